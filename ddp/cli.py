@@ -1,0 +1,126 @@
+"""The ``ddp`` command line: ``ddp list | recipe | summary | train``."""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import sys
+
+from ddp.errors import DDPError
+
+
+def _add_recipe_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recipe", help="path to a YAML recipe")
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a recipe value, e.g. --set policy.scheduler.num_inference_steps=5 (repeatable)",
+    )
+
+
+def cmd_list(args) -> int:
+    from ddp import registry
+
+    kinds = [args.kind] if args.kind else list(registry.KINDS)
+    for kind in kinds:
+        entries = [p for p in registry.plugins(kind) if fnmatch.fnmatch(p.name, args.pattern)]
+        print(f"{kind}: {registry.KINDS[kind][1]}")
+        if not entries:
+            print("  (none registered yet)")
+        for p in entries:
+            print(f"  {p.name:<20} {p.summary}  [{p.module}]")
+    return 0
+
+
+def cmd_recipe(args) -> int:
+    from ddp.experiment import build
+
+    print(build(args.recipe, args.overrides).to_yaml(), end="")
+    return 0
+
+
+def cmd_summary(args) -> int:
+    from ddp.experiment import build
+
+    exp = build(args.recipe, args.overrides)
+    r = exp.recipe
+    print(f"recipe: {exp.source} ({r.name})")
+    print(f"  encoder      {exp.parts['encoder'].plugin.name} -> latent {exp.model.latent_dim} per step")
+    print(
+        f"  policy       {exp.parts['policy.denoiser'].plugin.name} + {exp.parts['policy.scheduler'].plugin.name}"
+        f"  H={r.policy.horizon} M={r.policy.obs_steps} N={r.policy.action_steps}"
+    )
+    if r.world_model.enabled:
+        print(
+            f"  world model  {exp.parts['world_model.denoiser'].plugin.name} + "
+            f"{exp.parts['world_model.scheduler'].plugin.name}  lambda={r.world_model.weight}"
+        )
+    else:
+        print("  world model  disabled (DP3 baseline)")
+    print("parameters:")
+    for part, n in exp.parameter_counts().items():
+        print(f"  {part:<12} {n:>12,d}  ({n / 1e6:.2f} M)")
+    return 0
+
+
+def cmd_train(args) -> int:
+    from ddp.experiment import build
+
+    exp = build(args.recipe, args.overrides)
+    res = exp.train(output_dir=args.output_dir, resume=not args.no_resume, progress=not args.quiet)
+    print(
+        f"trained {res.steps} steps ({res.epochs} epochs) in {res.seconds:.1f} s, {res.samples_per_second:.0f} samples/s; "
+        f"loss {res.loss:.4f} (bc {res.loss_bc:.4f}, wm {res.loss_wm:.4f}); checkpoint {res.checkpoint}"
+    )
+    return 0
+
+
+def make_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ddp", description="Dream Diffusion Policy: diffusion policies with a world model to dream with."
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("list", help="list registered plugins", description="List registered plugins by kind.")
+    p.add_argument("kind", nargs="?", help="only this kind (encoder, denoiser, scheduler, ...)")
+    p.add_argument("--pattern", default="*", help="glob on plugin names, e.g. '*dd*'")
+    p.set_defaults(func=cmd_list)
+
+    p = sub.add_parser("recipe", help="print a recipe fully resolved", description="Print the resolved recipe (bases merged, overrides applied, defaults filled) as YAML.")
+    _add_recipe_args(p)
+    p.set_defaults(func=cmd_recipe)
+
+    p = sub.add_parser("summary", help="parameter counts per part", description="Build a recipe's model and print its parts and parameter counts.")
+    _add_recipe_args(p)
+    p.set_defaults(func=cmd_summary)
+
+    p = sub.add_parser("train", help="train a recipe", description="Train a recipe's model; resumes from <output_dir>/last.pt unless --no-resume.")
+    _add_recipe_args(p)
+    p.add_argument("--output-dir", help="where checkpoints and logs go (default: the recipe's train.output_dir)")
+    p.add_argument("--no-resume", action="store_true", help="start from scratch even if a checkpoint exists")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = make_parser()
+    args = parser.parse_args(argv)
+    if args.command == "list" and args.kind:
+        from ddp import registry
+
+        try:
+            registry._check_kind(args.kind)
+        except DDPError as err:
+            parser.exit(2, f"ddp: error: {err}\n")
+    try:
+        return args.func(args)
+    except DDPError as err:
+        print(f"ddp: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("ddp: interrupted (a checkpoint was written where training was running)", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

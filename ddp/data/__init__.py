@@ -1,0 +1,1 @@
+"""Demonstration data: sources, storage, normalisation and sequence sampling."""

@@ -1,0 +1,82 @@
+"""Episodes stored back to back, DP3 replay-buffer style, memory-mapped on disk.
+
+``steps`` is a TensorDict with batch size [total_steps] (keys such as
+``point_cloud`` [T, P, 3], ``agent_pos`` [T, D], ``action`` [T, A]);
+``episode_ends`` holds the exclusive end index of each episode.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from ddp.errors import DDPError
+
+FORMAT = "ddp-episodes"
+VERSION = 1
+
+
+@dataclass
+class Episodes:
+    steps: TensorDict
+    episode_ends: torch.Tensor  # long [num_episodes], exclusive ends
+
+    def __post_init__(self):
+        ends = torch.as_tensor(self.episode_ends, dtype=torch.long)
+        if ends.numel() == 0:
+            raise ValueError("no episodes")
+        if (ends[1:] <= ends[:-1]).any() or ends[0] <= 0 or int(ends[-1]) != self.steps.batch_size[0]:
+            raise ValueError("episode_ends must be strictly increasing and end at the number of steps")
+        self.episode_ends = ends
+
+    @property
+    def num_episodes(self) -> int:
+        return int(self.episode_ends.numel())
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.steps.batch_size[0])
+
+    def episode_starts(self) -> torch.Tensor:
+        return torch.cat([torch.zeros(1, dtype=torch.long), self.episode_ends[:-1]])
+
+    def episode(self, i: int) -> TensorDict:
+        start = 0 if i == 0 else int(self.episode_ends[i - 1])
+        return self.steps[start : int(self.episode_ends[i])]
+
+    @classmethod
+    def from_list(cls, episodes: list[TensorDict]) -> "Episodes":
+        lengths = torch.tensor([ep.batch_size[0] for ep in episodes], dtype=torch.long)
+        return cls(torch.cat(episodes, 0), torch.cumsum(lengths, 0))
+
+    def subset(self, indices) -> "Episodes":
+        return Episodes.from_list([self.episode(int(i)) for i in indices])
+
+    def save(self, path: str | Path) -> Path:
+        """Write a memory-mappable directory (TensorDict memmap + meta.json)."""
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        self.steps.memmap(path / "steps", num_threads=0)
+        torch.save(self.episode_ends, path / "episode_ends.pt")
+        (path / "meta.json").write_text(
+            json.dumps({"format": FORMAT, "version": VERSION, "num_episodes": self.num_episodes})
+        )
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Episodes":
+        """Open a directory written by :meth:`save` (memory-mapped, no pickle)."""
+        path = Path(path)
+        meta_file = path / "meta.json"
+        if not meta_file.exists():
+            raise DDPError(f"{path}: not a ddp episode directory (no meta.json)")
+        meta = json.loads(meta_file.read_text())
+        if meta.get("format") != FORMAT:
+            raise DDPError(f"{path}: meta.json format is {meta.get('format')!r}, expected {FORMAT!r}")
+        steps = TensorDict.load_memmap(path / "steps")
+        ends = torch.load(path / "episode_ends.pt", weights_only=True)
+        return cls(steps, ends)

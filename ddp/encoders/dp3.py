@@ -1,0 +1,115 @@
+"""The shared 3D encoder E_psi of DP3 (paper Sec. "Diffusion Policy", "Implementation Details").
+
+E_psi(X) = cat(PointNet(point cloud), MLP(agent_pos)) = O: per observation step a
+64-d point-cloud feature and a 64-d proprioception feature give the 128-d
+latent that conditions both the policy and the world model.
+
+PointNet (DP3's lightweight variant): per-point Linear 3-64-128-256, each
+followed by LayerNorm and ReLU; max-pool over the points (order invariant);
+Linear 256-64 + LayerNorm. State MLP: agent_pos_dim-64-ReLU-64.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import Tensor, nn
+
+from ddp.keys import KeyedModule
+from ddp.registry import register
+
+
+def mlp(in_dim: int, widths: tuple[int, ...], *, final_activation: bool, layernorm: bool = False) -> nn.Sequential:
+    """Linear layers of the given widths, each followed by [LayerNorm] and ReLU (the last one optionally bare)."""
+    layers: list[nn.Module] = []
+    dims = (in_dim, *widths)
+    for i, (d_in, d_out) in enumerate(zip(dims[:-1], dims[1:])):
+        layers.append(nn.Linear(d_in, d_out))
+        if i < len(widths) - 1 or final_activation:
+            if layernorm:
+                layers.append(nn.LayerNorm(d_out))
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+@dataclass
+class DP3EncoderConfig:
+    """Options of the DP3 point-cloud + proprioception encoder (defaults = DP3 / the paper)."""
+
+    pointnet_channels: tuple[int, ...] = (64, 128, 256)
+    out_channels: int = 64  # point-cloud feature size after the final projection
+    state_channels: tuple[int, ...] = (64, 64)  # the last entry is the state feature size
+    use_layernorm: bool = True  # LayerNorm after each PointNet linear
+    final_norm: Literal["layernorm", "none"] = "layernorm"
+    use_color: bool = False  # True: points are xyz+rgb (6 channels)
+
+    def __post_init__(self) -> None:
+        self.pointnet_channels = tuple(self.pointnet_channels)
+        self.state_channels = tuple(self.state_channels)
+        for name in ("pointnet_channels", "state_channels"):
+            widths = getattr(self, name)
+            if len(widths) == 0 or any(w <= 0 for w in widths):
+                raise ValueError(f"{name} must be a non-empty list of positive widths; got {list(widths)}")
+        if self.out_channels <= 0:
+            raise ValueError(f"out_channels must be positive; got {self.out_channels}")
+        if self.final_norm not in ("layernorm", "none"):
+            raise ValueError(f"final_norm must be 'layernorm' or 'none'; got {self.final_norm!r}")
+
+
+@register("encoder", "dp3", config=DP3EncoderConfig)
+class DP3Encoder(KeyedModule):
+    """DP3 encoder: PointNet(point_cloud) (+) MLP(agent_pos) -> latent (128-d by default).
+
+    ``encode(point_cloud [*, P, C], agent_pos [*, D]) -> [*, out_dim]`` on any
+    leading dims. ``C`` is 3 (xyz), or 6 (xyz+rgb) with ``use_color``; extra
+    channels beyond those are ignored (DP3 keeps xyz only when colour is off).
+    Keys: point_cloud, agent_pos -> latent.
+    """
+
+    default_in_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos"}
+    default_out_keys = {"latent": "latent"}
+
+    def __init__(self, config: DP3EncoderConfig, *, agent_pos_dim: int) -> None:
+        super().__init__()
+        if agent_pos_dim <= 0:
+            raise ValueError(f"agent_pos_dim must be positive; got {agent_pos_dim}")
+        self.config = config
+        self.agent_pos_dim = agent_pos_dim
+        self.point_channels = 6 if config.use_color else 3
+        self.pointnet = mlp(
+            self.point_channels, config.pointnet_channels, final_activation=True, layernorm=config.use_layernorm
+        )
+        self.projection = nn.Sequential(
+            nn.Linear(config.pointnet_channels[-1], config.out_channels),
+            nn.LayerNorm(config.out_channels) if config.final_norm == "layernorm" else nn.Identity(),
+        )
+        self.state_mlp = mlp(agent_pos_dim, config.state_channels, final_activation=False)
+
+    @property
+    def out_dim(self) -> int:
+        return self.config.out_channels + self.config.state_channels[-1]
+
+    def encode_points(self, point_cloud: Tensor) -> Tensor:
+        """PointNet: ``[*, P, C] -> [*, out_channels]`` (max-pool over the P points)."""
+        if point_cloud.dim() < 2 or point_cloud.shape[-1] < self.point_channels:
+            raise ValueError(
+                f"DP3Encoder: point_cloud must be [*, P, {self.point_channels}] "
+                f"(use_color={self.config.use_color}); got {tuple(point_cloud.shape)}"
+            )
+        per_point = self.pointnet(point_cloud[..., : self.point_channels])
+        return self.projection(per_point.amax(dim=-2))
+
+    def encode(self, point_cloud: Tensor, agent_pos: Tensor) -> Tensor:
+        """O = cat(PointNet(point_cloud), MLP(agent_pos)): ``[*, P, C], [*, D] -> [*, out_dim]``."""
+        if agent_pos.shape[-1:] != (self.agent_pos_dim,) or point_cloud.shape[:-2] != agent_pos.shape[:-1]:
+            raise ValueError(
+                f"DP3Encoder: agent_pos must be [*, {self.agent_pos_dim}] with the point cloud's leading dims "
+                f"{list(point_cloud.shape[:-2])}; got {list(agent_pos.shape)}"
+            )
+        return torch.cat([self.encode_points(point_cloud), self.state_mlp(agent_pos)], dim=-1)
+
+    def forward(self, td):
+        td.set(self.key("latent"), self.encode(td.get(self.key("point_cloud")), td.get(self.key("agent_pos"))))
+        return td

@@ -1,0 +1,105 @@
+"""``build(recipe)``: a validated recipe turned into an experiment you can train and inspect."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Iterable
+
+import torch
+
+from ddp.checkpoint import load_checkpoint
+from ddp.errors import CheckpointError
+from ddp.recipe import dump_yaml, load_recipe
+from ddp.schema import validate
+
+
+class Experiment:
+    """What :func:`build` returns.
+
+    Attributes: ``recipe`` (the validated dataclass tree), ``resolved`` (the
+    recipe as a plain dict with every default filled in: dump it with
+    :meth:`to_yaml` and ``build`` it again to get the same experiment),
+    ``parts`` (each plugin section's registry entry and config), ``model``.
+    """
+
+    def __init__(self, data: dict, source: str):
+        self.source = source
+        self.recipe, self.parts, self.resolved = validate(data, source)
+        torch.manual_seed(self.recipe.seed)
+        from ddp.models.factory import build_model
+
+        self.model = build_model(self.recipe, self.parts)
+        self._episodes = None
+
+    def __repr__(self) -> str:
+        return f"Experiment({self.recipe.name!r}, source={self.source!r})"
+
+    def to_yaml(self) -> str:
+        return dump_yaml(self.resolved)
+
+    def save_recipe(self, path: str | os.PathLike) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(self.to_yaml())
+        return path
+
+    def dataset(self):
+        """The recipe's data source plugin (``data.name``)."""
+        return self.parts["data"].build(task=self.recipe.task, seed=self.recipe.seed)
+
+    def episodes(self):
+        """The demonstrations (loaded once and cached)."""
+        if self._episodes is None:
+            self._episodes = self.dataset().load()
+        return self._episodes
+
+    def train(self, output_dir: str | os.PathLike | None = None, resume: bool = True, progress: bool = True):
+        """Train with the recipe's ``train`` section; see :class:`ddp.train.Trainer`."""
+        from ddp.train import Trainer
+
+        return Trainer(self, output_dir=output_dir, progress=progress).fit(resume=resume)
+
+    def load_checkpoint(self, path: str | os.PathLike, ema: bool = True) -> "Experiment":
+        """Load weights (the EMA weights by default, as evaluated in the paper) into ``model``."""
+        state = load_checkpoint(path)
+        weights = state["model"]
+        if ema and "ema" in state:
+            prefix = "module."
+            weights = {k[len(prefix) :]: v for k, v in state["ema"].items() if k.startswith(prefix)}
+        try:
+            self.model.load_state_dict(weights)
+        except RuntimeError as err:
+            first = str(err).strip().splitlines()[0]
+            raise CheckpointError(f"{path}: weights do not fit this recipe's model: {first}") from None
+        return self
+
+    def parameter_counts(self) -> dict[str, int]:
+        """Parameters per part (encoder, policy, world model) and in total."""
+        m = self.model
+        counts = {
+            "encoder": sum(p.numel() for p in m.encoder.parameters()),
+            "policy": sum(p.numel() for p in m.policy_net.parameters()),
+        }
+        if m.world_model_net is not None:
+            counts["world_model"] = sum(p.numel() for p in m.world_model_net.parameters())
+        counts["total"] = sum(p.numel() for p in m.parameters())
+        return counts
+
+
+def build(recipe: str | os.PathLike | dict, overrides: Iterable[str] = ()) -> Experiment:
+    """Load, validate and assemble a recipe: ``build("recipes/quickstart.yaml")``.
+
+    ``overrides`` are dotted assignments, e.g. ``["policy.scheduler.num_inference_steps=5"]``.
+    """
+    data, source = load_recipe(recipe, overrides)
+    return Experiment(data, source)
+
+
+def experiment_from_checkpoint(path: str | os.PathLike, ema: bool = True) -> Experiment:
+    """Rebuild the experiment stored inside a checkpoint and load its weights."""
+    import yaml
+
+    state = load_checkpoint(path)
+    exp = Experiment(yaml.safe_load(state["recipe"]), f"{path}#recipe")
+    return exp.load_checkpoint(path, ema=ema)

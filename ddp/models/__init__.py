@@ -1,0 +1,1 @@
+"""The Dream Diffusion Policy model and its training-time helpers."""

@@ -1,0 +1,163 @@
+"""DreamDiffusionPolicy: a shared encoder feeding a diffusion policy and a diffusion world model.
+
+Training follows the paper's Algorithm 1: the M history observations and the
+N future observations are encoded by the SAME encoder E_psi, the policy
+denoises the H-step action chunk conditioned (FiLM) on the history latents,
+the world model denoises the N future latents conditioned on the history
+latents (repeated and concatenated channel-wise) and on the executed actions
+a_{M-1 .. M+N-2} (FiLM), and L = L_BC + lambda * L_WM updates all three.
+With the world model disabled this is exactly DP3.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+
+from ddp.keys import KeyedModule
+from ddp.models.normalizer import MinMaxNormalizer
+
+
+class DreamDiffusionPolicy(KeyedModule):
+    """Encoder E_psi + policy pi_theta + world model W_phi (optional) + normaliser.
+
+    TensorDict interface (``forward``): reads ``point_cloud`` [*, M, P, C] and
+    ``agent_pos`` [*, M, D] (the M most recent observations), writes
+    ``latent`` [*, M, latent_dim], ``action_chunk`` [*, H, A] (the whole
+    denoised horizon) and ``action`` [*, N, A] (the chunk to execute).
+    """
+
+    default_in_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos"}
+    default_out_keys = {"latent": "latent", "action_chunk": "action_chunk", "action": "action"}
+
+    def __init__(
+        self,
+        *,
+        encoder: torch.nn.Module,
+        policy_net: torch.nn.Module,
+        policy_scheduler: Any,
+        world_model_net: torch.nn.Module | None,
+        world_model_scheduler: Any | None,
+        action_dim: int,
+        agent_pos_dim: int,
+        point_dim: int = 3,
+        horizon: int = 16,
+        obs_steps: int = 2,
+        action_steps: int = 8,
+        world_model_weight: float = 1.0,
+    ):
+        super().__init__()
+        self.encoder = encoder
+        self.policy_net = policy_net
+        self.policy_scheduler = policy_scheduler
+        self.world_model_net = world_model_net
+        self.world_model_scheduler = world_model_scheduler
+        self.normalizer = MinMaxNormalizer({"action": action_dim, "agent_pos": agent_pos_dim, "point_cloud": 3})
+        self.action_dim = action_dim
+        self.point_dim = point_dim
+        self.horizon = horizon
+        self.obs_steps = obs_steps
+        self.action_steps = action_steps
+        self.world_model_weight = world_model_weight
+        self.latent_dim = encoder.out_dim
+
+    @property
+    def has_world_model(self) -> bool:
+        return self.world_model_net is not None
+
+    # ------------------------------------------------------------------ encoding
+    def encode(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+        """O = E_psi(X): raw observations [*, P, C] / [*, D] -> latents [*, latent_dim]."""
+        pc = self.normalizer.normalize("point_cloud", point_cloud)
+        pos = self.normalizer.normalize("agent_pos", agent_pos)
+        return self.encoder.encode(pc, pos)
+
+    # ------------------------------------------------------------------ training (Algorithm 1)
+    def loss(self, batch: TensorDict, generator: torch.Generator | None = None) -> TensorDict:
+        """``loss_bc``, ``loss_wm`` and ``loss`` = loss_bc + lambda * loss_wm.
+
+        ``batch`` holds windows: ``point_cloud`` [B, T, P, C], ``agent_pos``
+        [B, T, D] with T >= M + N (T >= M without a world model) and
+        ``action`` [B, H, A], all unnormalised.
+        """
+        M, N, H = self.obs_steps, self.action_steps, self.horizon
+        pc, pos, act = batch[self.key("point_cloud")], batch[self.key("agent_pos")], batch["action"]
+        n_obs = M + N if self.has_world_model else M
+        if pc.shape[1] < n_obs or act.shape[1] < H:
+            raise ValueError(
+                f"batch windows too short: need {n_obs} observations and {H} actions, "
+                f"got {pc.shape[1]} and {act.shape[1]}"
+            )
+        # 2. Encode observations: history O_{0..M-1} and future O_{M..M+N-1}, one shared E_psi.
+        latents = self.encode(pc[:, :n_obs], pos[:, :n_obs])
+        history = latents[:, :M]
+        actions = self.normalizer.normalize("action", act[:, :H])
+
+        # 3. Diffusion policy loss L_BC, conditioned (FiLM) on the history latents.
+        history_cond = history.flatten(1)
+        loss_bc = self.policy_scheduler.loss(
+            lambda x, t: self.policy_net.predict(x, t, history_cond), actions, generator=generator
+        )
+        out = {"loss_bc": loss_bc}
+        if self.has_world_model:
+            # 4. World-model loss L_WM: future latents, conditioned on history (channel concat)
+            #    and on the executed actions a_{M-1 .. M+N-2} (FiLM).
+            future = latents[:, M : M + N]
+            executed = actions[:, M - 1 : M - 1 + N].flatten(1)
+            loss_wm = self.world_model_scheduler.loss(
+                lambda x, t: self.world_model_net.predict(x, t, executed, history_cond), future, generator=generator
+            )
+            out["loss_wm"] = loss_wm
+            # 5. L_total = L_BC + lambda * L_WM
+            out["loss"] = loss_bc + self.world_model_weight * loss_wm
+        else:
+            out["loss_wm"] = torch.zeros_like(loss_bc)
+            out["loss"] = loss_bc
+        return TensorDict(out, batch_size=[])
+
+    # ------------------------------------------------------------------ inference
+    @torch.no_grad()
+    def sample_actions(self, history: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
+        """a_{0..H-1} ~ pi_theta(. | O_{0..M-1}): latents [*, M, L] -> unnormalised actions [*, H, A]."""
+        batch_shape = history.shape[:-2]
+        cond = history.reshape(-1, self.obs_steps * self.latent_dim)
+        noise = torch.randn(
+            cond.shape[0], self.horizon, self.action_dim, generator=generator, device=cond.device, dtype=cond.dtype
+        )
+        actions = self.policy_scheduler.sample(
+            lambda x, t: self.policy_net.predict(x, t, cond), noise, generator=generator
+        )
+        return self.normalizer.unnormalize("action", actions).reshape(*batch_shape, self.horizon, self.action_dim)
+
+    def executed_actions(self, action_chunk: torch.Tensor) -> torch.Tensor:
+        """The N actions that are executed: a_{M-1 .. M+N-2} of the denoised horizon."""
+        start = self.obs_steps - 1
+        return action_chunk[..., start : start + self.action_steps, :]
+
+    @torch.no_grad()
+    def imagine(
+        self, history: torch.Tensor, actions: torch.Tensor, generator: torch.Generator | None = None
+    ) -> torch.Tensor:
+        """O_{M..M+N-1} ~ W_phi(. | O_{0..M-1}, a): latents [*, M, L] + actions [*, N, A] -> [*, N, L]."""
+        if not self.has_world_model:
+            raise RuntimeError("this model has no world model (world_model.enabled is false)")
+        batch_shape = history.shape[:-2]
+        cond = history.reshape(-1, self.obs_steps * self.latent_dim)
+        executed = self.normalizer.normalize("action", actions).reshape(cond.shape[0], -1)
+        noise = torch.randn(
+            cond.shape[0], self.action_steps, self.latent_dim, generator=generator, device=cond.device, dtype=cond.dtype
+        )
+        future = self.world_model_scheduler.sample(
+            lambda x, t: self.world_model_net.predict(x, t, executed, cond), noise, generator=generator
+        )
+        return future.reshape(*batch_shape, self.action_steps, self.latent_dim)
+
+    def forward(self, tensordict: TensorDict) -> TensorDict:
+        latent = self.encode(tensordict[self.key("point_cloud")], tensordict[self.key("agent_pos")])
+        chunk = self.sample_actions(latent[..., -self.obs_steps :, :])
+        tensordict.set(self.key("latent"), latent)
+        tensordict.set(self.key("action_chunk"), chunk)
+        tensordict.set(self.key("action"), self.executed_actions(chunk))
+        return tensordict

@@ -1,0 +1,48 @@
+"""Exponential moving average of model weights (Diffusion Policy's warm-up schedule)."""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from torch import nn
+
+from ddp.schema import EMAConfig
+
+
+def ema_decay(step: int, cfg: EMAConfig) -> float:
+    """decay = 1 - (1 + step / inv_gamma) ** -power, clamped to [min_value, max_value].
+
+    ``step`` counts optimiser steps after ``update_after_step``; decay is 0 at
+    the first update (the average starts as a copy of the weights).
+    """
+    step = step - cfg.update_after_step - 1
+    if step <= 0:
+        return 0.0
+    value = 1.0 - (1.0 + step / cfg.inv_gamma) ** -cfg.power
+    return float(min(max(value, cfg.min_value), cfg.max_value))
+
+
+class EMA(nn.Module):
+    """Holds ``module``, an averaged copy of a model, evaluated instead of the raw weights."""
+
+    def __init__(self, model: nn.Module, cfg: EMAConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.module = copy.deepcopy(model).eval().requires_grad_(False)
+        self.register_buffer("optimization_step", torch.zeros((), dtype=torch.long))
+        self.decay = 0.0
+
+    @torch.no_grad()
+    def update(self, model: nn.Module) -> float:
+        self.optimization_step += 1
+        self.decay = ema_decay(int(self.optimization_step), self.cfg)
+        d = self.decay
+        for ema_p, p in zip(self.module.parameters(), model.parameters()):
+            if p.requires_grad:
+                ema_p.mul_(d).add_(p.detach(), alpha=1.0 - d)
+            else:
+                ema_p.copy_(p)
+        for ema_b, b in zip(self.module.buffers(), model.buffers()):
+            ema_b.copy_(b)
+        return d

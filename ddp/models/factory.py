@@ -1,0 +1,35 @@
+"""Assemble a DreamDiffusionPolicy from a validated recipe's parts."""
+
+from __future__ import annotations
+
+from ddp.models.ddp_policy import DreamDiffusionPolicy
+from ddp.schema import Part, Recipe
+
+
+def build_model(recipe: Recipe, parts: dict[str, Part]) -> DreamDiffusionPolicy:
+    task, pol, wm = recipe.task, recipe.policy, recipe.world_model
+    encoder = parts["encoder"].build(agent_pos_dim=task.agent_pos_dim)
+    latent = encoder.out_dim
+    policy_net = parts["policy.denoiser"].build(input_dim=task.action_dim, global_cond_dim=pol.obs_steps * latent)
+    wm_net = wm_sched = None
+    if wm.enabled:
+        wm_net = parts["world_model.denoiser"].build(
+            input_dim=latent,
+            global_cond_dim=pol.action_steps * task.action_dim,
+            local_cond_dim=pol.obs_steps * latent,
+        )
+        wm_sched = parts["world_model.scheduler"].build()
+    return DreamDiffusionPolicy(
+        encoder=encoder,
+        policy_net=policy_net,
+        policy_scheduler=parts["policy.scheduler"].build(),
+        world_model_net=wm_net,
+        world_model_scheduler=wm_sched,
+        action_dim=task.action_dim,
+        agent_pos_dim=task.agent_pos_dim,
+        point_dim=task.point_dim,
+        horizon=pol.horizon,
+        obs_steps=pol.obs_steps,
+        action_steps=pol.action_steps,
+        world_model_weight=wm.weight,
+    )

@@ -1,0 +1,136 @@
+"""YAML recipes: loading, ``base:`` inheritance, dotted overrides.
+
+A recipe is a YAML mapping. ``base: other.yaml`` (a path relative to the
+recipe, or a list of them) is loaded first and the recipe is merged on top:
+mappings merge key by key, everything else (lists included) replaces. A
+plugin section whose ``name`` differs from the base's swaps the part: it
+replaces the base section whole, since the old part's options would not fit.
+Overrides ``a.b.c=value`` (value parsed as YAML) are applied last.
+Every error is one line naming the file and the dotted key.
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+from pathlib import Path
+from typing import Any, Iterable
+
+import yaml
+
+from ddp.errors import RecipeError
+
+BASE_KEY = "base"
+
+
+def _read_yaml(path: Path, *, referenced_by: str | None = None) -> dict:
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        if referenced_by is not None:
+            raise RecipeError(f"base recipe '{path}' not found", source=referenced_by, key=BASE_KEY) from None
+        raise RecipeError("recipe file not found", source=str(path)) from None
+    except OSError as err:
+        raise RecipeError(f"cannot read recipe: {err.strerror}", source=str(path)) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise RecipeError(f"malformed YAML at {where}{problem}", source=str(path)) from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise RecipeError(f"a recipe must be a YAML mapping, got {type(data).__name__}", source=str(path))
+    return data
+
+
+def _same_part(a: dict, b: dict) -> bool:
+    return "name" not in a or "name" not in b or a["name"] == b["name"]
+
+
+def merge(base: dict, top: dict) -> dict:
+    """Recursive merge: mappings merge, other values (lists too) replace.
+
+    Mappings naming different plugins (``name`` differs) do not merge: the top one wins whole.
+    """
+    out = copy.deepcopy(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict) and _same_part(out[key], value):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def load_yaml_tree(path: str | os.PathLike, _chain: tuple[Path, ...] = (), _referenced_by: str | None = None) -> dict:
+    """Load a recipe file and resolve its ``base:`` chain (no validation)."""
+    path = Path(path)
+    resolved = path.resolve()
+    if resolved in _chain:
+        cycle = " -> ".join(str(p) for p in (*_chain, resolved))
+        raise RecipeError(f"cyclic base: {cycle}", source=_referenced_by, key=BASE_KEY)
+    data = _read_yaml(path, referenced_by=_referenced_by)
+    bases = data.pop(BASE_KEY, None)
+    if bases is None:
+        return data
+    if isinstance(bases, str):
+        bases = [bases]
+    if not isinstance(bases, list) or not all(isinstance(b, str) for b in bases):
+        raise RecipeError(f"must be a path or a list of paths, got {bases!r}", source=str(path), key=BASE_KEY)
+    merged: dict = {}
+    for base in bases:
+        base_path = (path.parent / base) if not os.path.isabs(base) else Path(base)
+        merged = merge(merged, load_yaml_tree(base_path, (*_chain, resolved), str(path)))
+    return merge(merged, data)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``"policy.scheduler.num_inference_steps=5"`` -> (["policy", ...], 5)."""
+    if not isinstance(text, str) or "=" not in text:
+        raise RecipeError(f"bad override {text!r}: expected key.path=value", source="--set")
+    key, _, raw = text.partition("=")
+    key = key.strip()
+    parts = key.split(".")
+    if not key or any(not p or not p.replace("_", "").replace("-", "").isalnum() for p in parts):
+        raise RecipeError(f"bad override {text!r}: '{key}' is not a dotted key like a.b.c", source="--set")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError:
+        raise RecipeError(f"bad override {text!r}: the value is not valid YAML", source="--set", key=key) from None
+    return parts, value
+
+
+def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
+    out = copy.deepcopy(data)
+    for text in overrides:
+        parts, value = parse_override(text)
+        node = out
+        for i, part in enumerate(parts[:-1]):
+            child = node.get(part)
+            if child is None:
+                child = node[part] = {}
+            if not isinstance(child, dict):
+                raise RecipeError(
+                    f"cannot set '{'.'.join(parts)}': '{'.'.join(parts[: i + 1])}' is {child!r}, not a mapping",
+                    source="--set",
+                    key=".".join(parts),
+                )
+            node = child
+        node[parts[-1]] = value
+    return out
+
+
+def load_recipe(path: str | os.PathLike | dict, overrides: Iterable[str] = ()) -> tuple[dict, str]:
+    """The merged, overridden recipe as a plain dict, and its source name."""
+    if isinstance(path, dict):
+        data, source = copy.deepcopy(path), "<dict>"
+        data.pop(BASE_KEY, None)
+    else:
+        data, source = load_yaml_tree(path), str(path)
+    return apply_overrides(data, overrides), source
+
+
+def dump_yaml(data: dict) -> str:
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None)

@@ -1,0 +1,117 @@
+"""DDIM: Song et al. 2021, "Denoising Diffusion Implicit Models" (eq. 12 and 16).
+
+Trained with the same loss as DDPM; samples in ``num_inference_steps``
+strided steps (deterministically when ``eta = 0``). Numerically equal to
+``diffusers.DDIMScheduler`` with the same options (no thresholding,
+``use_clipped_model_output=False``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from ddp.registry import register
+from ddp.schedulers.base import DiscreteDiffusionScheduler, StepOutput, check_diffusion_fields, randn
+
+
+@dataclass
+class DDIMConfig:
+    """Options of the DDIM scheduler (defaults follow DP3: 100 train steps, 10 inference steps)."""
+
+    num_train_timesteps: int = 100
+    beta_start: float = 1e-4
+    beta_end: float = 0.02
+    beta_schedule: Literal["squaredcos_cap_v2", "linear", "scaled_linear"] = "squaredcos_cap_v2"
+    clip_sample: bool = True
+    clip_sample_range: float = 1.0
+    #: alpha_bar of the step after the last one: 1 (True) or alpha_bar_0 (False)
+    set_alpha_to_one: bool = True
+    steps_offset: int = 0
+    timestep_spacing: Literal["leading", "trailing"] = "leading"
+    #: eta = 0: deterministic DDIM; eta = 1: DDPM-like posterior noise (eq. 16)
+    eta: float = 0.0
+    num_inference_steps: int = 10
+    prediction_type: Literal["epsilon", "sample"] = "epsilon"
+
+    def __post_init__(self):
+        check_diffusion_fields(self)
+        K, n = self.num_train_timesteps, self.num_inference_steps
+        if not 1 <= n <= K:
+            raise ValueError(f"num_inference_steps must be in [1, num_train_timesteps={K}]; got {n}")
+        if self.eta < 0.0:
+            raise ValueError(f"eta must be >= 0; got {self.eta}")
+        if self.steps_offset < 0:
+            raise ValueError(f"steps_offset must be >= 0; got {self.steps_offset}")
+        if self.timestep_spacing == "leading" and (n - 1) * (K // n) + self.steps_offset >= K:
+            raise ValueError(
+                f"steps_offset must keep the first step below num_train_timesteps={K} "
+                f"(largest allowed: {K - 1 - (n - 1) * (K // n)}); got {self.steps_offset}"
+            )
+
+
+@register("scheduler", "ddim", config=DDIMConfig)
+class DDIMScheduler(DiscreteDiffusionScheduler):
+    """DDIM sampling (Song et al. 2021, eq. 12) with optional eta-noise (eq. 16)."""
+
+    def __init__(self, config: DDIMConfig):
+        self._init_schedule(config)
+        # alpha_bar used after the last step (k_prev < 0)
+        self.final_alpha_cumprod = torch.tensor(1.0) if config.set_alpha_to_one else self.alphas_cumprod[0]
+        self.set_timesteps(config.num_inference_steps)
+
+    def set_timesteps(self, num_inference_steps: int) -> None:
+        """``leading``: k in {(n-1) r, ..., r, 0} + steps_offset with r = K // n;
+        ``trailing``: k = round(K - i K / n) - 1 for i = 0..n-1 (Lin et al. 2024, Table 2).
+        """
+        self._check_num_inference_steps(num_inference_steps)
+        K = self.config.num_train_timesteps
+        self.num_inference_steps = num_inference_steps
+        if self.config.timestep_spacing == "leading":
+            ratio = K // num_inference_steps
+            ks = [i * ratio + self.config.steps_offset for i in reversed(range(num_inference_steps))]
+        else:
+            ratio = K / num_inference_steps
+            # numpy's round (half to even), as diffusers does, on the float grid K, K - ratio, ...
+            ks = [round(K - i * ratio) - 1 for i in range(math.ceil(K / ratio))]
+        self.timesteps = torch.tensor(ks, dtype=torch.int64)
+
+    def step(
+        self, model_output: torch.Tensor, timestep: int, sample: torch.Tensor, generator: torch.Generator | None = None
+    ) -> StepOutput:
+        """x_k -> x_{k'} with k' = k - K // n (DDIM eq. 12):
+
+        1. alpha_bar_k, alpha_bar_{k'} (final_alpha_cumprod when k' < 0)
+        2. x_0 and eps from the network output, x_0 clipped to +-clip_sample_range
+           (eps is the network's, or re-derived from the unclipped x_0 for "sample")
+        3. sigma_k = eta sqrt((1 - alpha_bar_{k'}) / (1 - alpha_bar_k)) sqrt(1 - alpha_bar_k / alpha_bar_{k'})
+           (eq. 16)
+        4. x_{k'} = sqrt(alpha_bar_{k'}) x_0 + sqrt(1 - alpha_bar_{k'} - sigma_k^2) eps + sigma_k z
+        """
+        k = int(timestep)
+        k_prev = k - self.config.num_train_timesteps // self.num_inference_steps
+        # 1.
+        alpha_bar_t = self.alphas_cumprod[k]
+        alpha_bar_prev = self.alphas_cumprod[k_prev] if k_prev >= 0 else self.final_alpha_cumprod
+        beta_bar_t = 1 - alpha_bar_t
+        beta_bar_prev = 1 - alpha_bar_prev
+        # 2.
+        if self.config.prediction_type == "epsilon":
+            pred_eps = model_output
+        else:
+            pred_eps = (sample - alpha_bar_t**0.5 * model_output) / beta_bar_t**0.5
+        pred_x0 = self._pred_original_sample(model_output, sample, alpha_bar_t)
+        # 3.
+        eta = self.config.eta
+        variance = (beta_bar_prev / beta_bar_t) * (1 - alpha_bar_t / alpha_bar_prev)
+        sigma_t = eta * variance**0.5
+        # 4.
+        direction = (1 - alpha_bar_prev - sigma_t**2) ** 0.5 * pred_eps
+        x_prev = alpha_bar_prev**0.5 * pred_x0 + direction
+        if eta > 0:
+            z = randn(model_output.shape, generator=generator, device=model_output.device, dtype=model_output.dtype)
+            x_prev = x_prev + sigma_t * z
+        return StepOutput(x_prev, pred_x0)

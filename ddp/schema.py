@@ -1,0 +1,204 @@
+"""The recipe schema: top-level sections as config dataclasses.
+
+Sections that name a plugin (``encoder``, ``policy.denoiser``, ...) are
+mappings ``{name: <registered name>, <option>: <value>, ...}``; their options
+are validated against that plugin's own config dataclass by
+:func:`resolve_part`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from ddp import registry
+from ddp.config import from_dict, to_dict
+from ddp.errors import RecipeError
+
+
+@dataclass
+class TaskConfig:
+    """Shapes of the task's data: what the environment / data set provides."""
+
+    action_dim: int = 4
+    agent_pos_dim: int = 9
+    num_points: int = 512
+    point_dim: int = 3
+
+    def __post_init__(self):
+        for name in ("action_dim", "agent_pos_dim", "num_points", "point_dim"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1; got {getattr(self, name)}")
+
+
+@dataclass
+class PolicyConfig:
+    """The diffusion policy head: H-step action chunks from M latent steps."""
+
+    horizon: int = 16  # H
+    obs_steps: int = 2  # M
+    action_steps: int = 8  # N (executed per call; also the world model's horizon)
+    denoiser: dict = field(default_factory=lambda: {"name": "unet1d"})
+    scheduler: dict = field(default_factory=lambda: {"name": "ddim"})
+
+    def __post_init__(self):
+        if self.obs_steps < 1:
+            raise ValueError(f"obs_steps must be >= 1; got {self.obs_steps}")
+        if self.action_steps < 1:
+            raise ValueError(f"action_steps must be >= 1; got {self.action_steps}")
+        if self.horizon < self.obs_steps + self.action_steps - 1:
+            raise ValueError(
+                f"horizon must be >= obs_steps + action_steps - 1 = {self.obs_steps + self.action_steps - 1} "
+                f"(the executed chunk is actions[obs_steps-1 : obs_steps-1+action_steps]); got {self.horizon}"
+            )
+
+
+@dataclass
+class WorldModelConfig:
+    """The diffusion world model head: N future latents from M latents + N actions."""
+
+    enabled: bool = True
+    weight: float = 1.0  # lambda in L = L_BC + lambda * L_WM
+    denoiser: dict = field(default_factory=lambda: {"name": "unet1d_wm"})
+    scheduler: dict = field(default_factory=lambda: {"name": "ddim", "clip_sample": False})
+
+    def __post_init__(self):
+        if self.weight < 0:
+            raise ValueError(f"weight must be >= 0; got {self.weight}")
+
+
+@dataclass
+class EMAConfig:
+    """Diffusion-Policy-style EMA: decay = 1 - (1 + step / inv_gamma) ** -power, clamped."""
+
+    enabled: bool = True
+    power: float = 0.75
+    max_value: float = 0.9999
+    min_value: float = 0.0
+    inv_gamma: float = 1.0
+    update_after_step: int = 0
+
+    def __post_init__(self):
+        if not 0.0 <= self.min_value <= self.max_value <= 1.0:
+            raise ValueError(f"need 0 <= min_value <= max_value <= 1; got {self.min_value}, {self.max_value}")
+
+
+@dataclass
+class TrainConfig:
+    """Optimisation (DP3's defaults: AdamW 1e-4, betas (0.95, 0.999), wd 1e-6, batch 128, 500 warm-up)."""
+
+    batch_size: int = 128
+    lr: float = 1e-4
+    betas: tuple[float, float] = (0.95, 0.999)
+    weight_decay: float = 1e-6
+    warmup_steps: int = 500
+    epochs: int = 500
+    max_steps: int | None = None  # stop early after this many optimiser steps
+    lr_schedule: Literal["cosine", "constant"] = "cosine"
+    grad_clip_norm: float | None = None
+    checkpoint_every_epochs: int = 50
+    log_every_steps: int = 20
+    output_dir: str = "runs/{name}"
+    device: str = "auto"
+    num_threads: int | None = None
+
+    def __post_init__(self):
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1; got {self.batch_size}")
+        if self.lr <= 0:
+            raise ValueError(f"lr must be > 0; got {self.lr}")
+        if self.epochs < 1:
+            raise ValueError(f"epochs must be >= 1; got {self.epochs}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1 or null; got {self.max_steps}")
+        if self.checkpoint_every_epochs < 1:
+            raise ValueError(f"checkpoint_every_epochs must be >= 1; got {self.checkpoint_every_epochs}")
+
+
+@dataclass
+class Recipe:
+    """A whole experiment. ``ddp.build(path)`` validates a YAML file into this."""
+
+    name: str
+    seed: int = 0
+    plugins: list[str] = field(default_factory=list)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    encoder: dict = field(default_factory=lambda: {"name": "dp3"})
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    ema: EMAConfig = field(default_factory=EMAConfig)
+    data: dict = field(default_factory=lambda: {"name": "synthetic_reach"})
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+
+#: recipe sections holding one plugin each: dotted key -> kind
+PART_SECTIONS: dict[str, str] = {
+    "encoder": "encoder",
+    "policy.denoiser": "denoiser",
+    "policy.scheduler": "scheduler",
+    "world_model.denoiser": "denoiser",
+    "world_model.scheduler": "scheduler",
+    "data": "dataset",
+}
+
+
+@dataclass
+class Part:
+    """A resolved plugin section: the registry entry and its validated config."""
+
+    plugin: registry.Plugin
+    config: Any
+
+    def build(self, **context):
+        return self.plugin.factory(self.config, **context)
+
+    def as_dict(self) -> dict:
+        return {"name": self.plugin.name, **to_dict(self.config)}
+
+
+def resolve_part(kind: str, section: Any, *, key: str, source: str | None) -> Part:
+    """Validate a ``{name: ..., **options}`` section against its plugin's config."""
+    if isinstance(section, str):
+        section = {"name": section}
+    if not isinstance(section, dict):
+        raise RecipeError(f"expected a mapping with a 'name' key, got {section!r}", source=source, key=key)
+    if "name" not in section:
+        raise RecipeError(
+            f"missing required option 'name' (one of: {', '.join(registry.list_plugins(kind))})",
+            source=source,
+            key=f"{key}.name",
+        )
+    name = section["name"]
+    if not isinstance(name, str):
+        raise RecipeError(f"expected a plugin name, got {name!r}", source=source, key=f"{key}.name")
+    plugin = registry.get(kind, name, source=source, key=f"{key}.name")
+    options = {k: v for k, v in section.items() if k != "name"}
+    return Part(plugin, from_dict(plugin.config_cls, options, key=key, source=source))
+
+
+def _get(data: dict, dotted: str):
+    node = data
+    for part in dotted.split("."):
+        node = node[part]
+    return node
+
+
+def _set(data: dict, dotted: str, value) -> None:
+    *head, last = dotted.split(".")
+    node = data
+    for part in head:
+        node = node[part]
+    node[last] = value
+
+
+def validate(data: dict, source: str | None) -> tuple[Recipe, dict[str, Part], dict]:
+    """Recipe dataclass, resolved parts, and the fully resolved (defaults filled) dict."""
+    registry.import_plugin_modules(list(data.get("plugins") or []), source=source)
+    recipe = from_dict(Recipe, data, source=source)
+    resolved = to_dict(recipe)
+    parts: dict[str, Part] = {}
+    for dotted, kind in PART_SECTIONS.items():
+        part = resolve_part(kind, _get(resolved, dotted), key=dotted, source=source)
+        parts[dotted] = part
+        _set(resolved, dotted, part.as_dict())
+    return recipe, parts, resolved

@@ -1,0 +1,50 @@
+import subprocess
+import sys
+
+import pytest
+
+from ddp.cli import main
+from conftest import RECIPES
+
+
+def test_help_for_every_command(capsys):
+    for cmd in ([], ["list"], ["recipe"], ["summary"], ["train"]):
+        with pytest.raises(SystemExit) as info:
+            main([*cmd, "--help"])
+        assert info.value.code == 0
+        assert "usage: ddp" in capsys.readouterr().out
+
+
+def test_list_shows_kinds_and_plugins(capsys):
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    for line in ("encoder:", "  dp3", "scheduler:", "  consistency_flow", "dataset:", "  synthetic_reach"):
+        assert line in out
+    assert main(["list", "scheduler", "--pattern", "dd*"]) == 0
+    out = capsys.readouterr().out
+    assert "ddim" in out and "consistency_flow" not in out
+
+
+def test_summary_prints_parameter_counts(capsys):
+    assert main(["summary", str(RECIPES / "base/simple_ddp.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "encoder" in out and "policy" in out and "world_model" in out and "total" in out
+
+
+def test_bad_input_is_one_line_and_exit_2(capsys, tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"base: {RECIPES / 'quickstart.yaml'}\nworld_model:\n  scheduler:\n    name: ddmp\n")
+    assert main(["recipe", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "world_model.scheduler.name: unknown scheduler 'ddmp'" in err
+
+
+def test_recipe_with_set_prints_resolved_yaml(capsys):
+    assert main(["recipe", str(RECIPES / "quickstart.yaml"), "--set", "policy.scheduler.num_inference_steps=5"]) == 0
+    out = capsys.readouterr().out
+    assert "num_inference_steps: 5" in out
+
+
+def test_console_script_entry_point_runs():
+    out = subprocess.run([sys.executable, "-m", "ddp.cli", "list", "encoder"], capture_output=True, text=True, check=True)
+    assert "dp3" in out.stdout

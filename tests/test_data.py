@@ -1,0 +1,43 @@
+import torch
+
+from ddp.data.episodes import Episodes
+from ddp.data.sequence import SequenceDataset, window_indices
+from tensordict import TensorDict
+
+
+def test_window_indices_pad_by_repeating_edge_frames():
+    ends = torch.tensor([5, 8])
+    idx = window_indices(ends, length=4, pad_before=1, pad_after=2)
+    assert idx[0].tolist() == [0, 0, 1, 2]  # first frame repeated before the start
+    ep0 = idx[(idx < 5).all(1)]
+    assert ep0[-1].tolist() == [3, 4, 4, 4]  # last frame repeated after the end
+    assert len(ep0) == (5 - 4 + 1) + 1 + 2  # 2 unpadded + 1 before + 2 after
+    ep1 = idx[(idx >= 5).all(1)]
+    assert ep1[0].tolist() == [5, 5, 6, 7] and ep1[-1].tolist() == [6, 7, 7, 7]
+    assert ((idx < 5).all(1) | (idx >= 5).all(1)).all()  # windows never straddle episodes
+
+
+def _episodes():
+    eps = [
+        TensorDict({"action": torch.arange(n, dtype=torch.float32).unsqueeze(-1) + 100 * i,
+                    "agent_pos": torch.randn(n, 9)}, batch_size=[n])
+        for i, n in enumerate([6, 9, 7])
+    ]
+    return Episodes.from_list(eps)
+
+
+def test_episodes_save_load_round_trip(tmp_path):
+    e = _episodes()
+    e.save(tmp_path / "demos")
+    back = Episodes.load(tmp_path / "demos")
+    assert back.num_episodes == 3 and back.episode_ends.tolist() == [6, 15, 22]
+    assert torch.equal(back.steps["agent_pos"], e.steps["agent_pos"])
+    assert torch.equal(back.episode(1)["action"][:, 0], torch.arange(9.0) + 100)
+
+
+def test_sequence_dataset_batches_match_items():
+    ds = SequenceDataset(_episodes(), 5, pad_before=1, pad_after=3)
+    b = ds.batch(torch.tensor([0, 4, len(ds) - 1]))
+    assert b.batch_size == (3, 5)
+    assert torch.equal(b[1]["action"], ds[4]["action"])
+    assert ds[0]["action"][:, 0].tolist() == [0, 0, 1, 2, 3]

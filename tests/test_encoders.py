@@ -1,0 +1,183 @@
+"""Encoders: shapes on any leading dims, keys, DP3 architecture facts, config round trip."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torch import nn
+
+from ddp.config import from_dict, to_dict
+from ddp.errors import RecipeError
+from ddp.registry import get
+
+AGENT_POS_DIM = 4
+N_POINTS = 32
+BATCH_SHAPES = [(), (3,), (2, 3)]
+
+
+def build(name: str, options: dict | None = None, agent_pos_dim: int = AGENT_POS_DIM):
+    plugin = get("encoder", name)
+    return plugin.factory(from_dict(plugin.config_cls, options or {}), agent_pos_dim=agent_pos_dim)
+
+
+def inputs(batch_shape, channels: int = 3, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    return (
+        torch.randn(*batch_shape, N_POINTS, channels, generator=g),
+        torch.randn(*batch_shape, AGENT_POS_DIM, generator=g),
+    )
+
+
+@pytest.mark.parametrize("name", ["dp3", "state_mlp"])
+@pytest.mark.parametrize("batch_shape", BATCH_SHAPES)
+def test_encode_and_forward_shapes(name, batch_shape):
+    enc = build(name)
+    pc, pos = inputs(batch_shape)
+    latent = enc.encode(pc, pos)
+    assert latent.shape == (*batch_shape, enc.out_dim)
+    assert enc.out_dim == 128
+
+    td = TensorDict({"point_cloud": pc, "agent_pos": pos}, batch_size=batch_shape)
+    out = enc(td)
+    assert out["latent"].shape == (*batch_shape, 128)
+    torch.testing.assert_close(out["latent"], latent)
+
+
+def test_leading_dims_are_independent():
+    """Encoding a [2, 3] batch equals encoding each item alone."""
+    enc = build("dp3")
+    pc, pos = inputs((2, 3))
+    batched = enc.encode(pc, pos)
+    single = enc.encode(pc[1, 2], pos[1, 2])
+    torch.testing.assert_close(batched[1, 2], single, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["dp3", "state_mlp"])
+def test_set_keys_renames_and_rejects_unknown_role(name):
+    enc = build(name).set_keys(agent_pos="proprio", latent=("obs", "z"))
+    assert "proprio" in enc.in_keys and ("obs", "z") in enc.out_keys
+    pc, pos = inputs((3,))
+    td = TensorDict({"point_cloud": pc, "proprio": pos}, batch_size=[3])
+    if name == "dp3":
+        enc.set_keys(point_cloud="pc")
+        td.rename_key_("point_cloud", "pc")
+    enc(td)
+    assert td["obs", "z"].shape == (3, 128)
+    assert "latent" not in td.keys()
+    with pytest.raises(KeyError, match="no key role 'agent_poz'.*did you mean 'agent_pos'"):
+        enc.set_keys(agent_poz="x")
+
+
+def test_state_mlp_reads_no_point_cloud():
+    enc = build("state_mlp")
+    assert enc.in_keys == ["agent_pos"]
+    td = TensorDict({"agent_pos": torch.randn(5, AGENT_POS_DIM)}, batch_size=[5])
+    assert enc(td)["latent"].shape == (5, 128)
+    assert build("state_mlp", {"out_dim": 32}).encode(None, torch.randn(AGENT_POS_DIM)).shape == (32,)
+
+
+def test_dp3_architecture_matches_dp3():
+    enc = build("dp3")
+    linears = [m for m in enc.pointnet if isinstance(m, nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linears] == [(3, 64), (64, 128), (128, 256)]
+    # each PointNet linear is followed by LayerNorm then ReLU
+    kinds = [type(m) for m in enc.pointnet]
+    assert kinds == [nn.Linear, nn.LayerNorm, nn.ReLU] * 3
+    projection = enc.projection[0]
+    assert isinstance(projection, nn.Linear) and (projection.in_features, projection.out_features) == (256, 64)
+    assert isinstance(enc.projection[1], nn.LayerNorm)
+    state = [type(m) for m in enc.state_mlp]
+    assert state == [nn.Linear, nn.ReLU, nn.Linear]  # no final activation
+    assert (enc.state_mlp[0].in_features, enc.state_mlp[-1].out_features) == (AGENT_POS_DIM, 64)
+    assert enc.out_dim == 64 + 64
+
+
+def test_dp3_options_change_the_architecture():
+    plain = build("dp3", {"use_layernorm": False, "final_norm": "none"})
+    assert not any(isinstance(m, nn.LayerNorm) for m in plain.pointnet.modules())
+    assert isinstance(plain.projection[1], nn.Identity)
+    wide = build("dp3", {"pointnet_channels": [32, 96], "out_channels": 48, "state_channels": [16, 8]})
+    assert wide.out_dim == 56
+    assert wide.encode(*inputs((2,))).shape == (2, 56)
+
+
+def test_dp3_max_pool_is_permutation_invariant():
+    enc = build("dp3")
+    pc, pos = inputs((2,))
+    perm = torch.randperm(N_POINTS, generator=torch.Generator().manual_seed(1))
+    torch.testing.assert_close(enc.encode(pc[:, perm], pos), enc.encode(pc, pos), rtol=1e-5, atol=1e-6)
+    # and it does depend on the points
+    assert not torch.allclose(enc.encode(pc * 2.0, pos), enc.encode(pc, pos))
+
+
+def test_dp3_color_uses_six_channels():
+    enc = build("dp3", {"use_color": True})
+    assert enc.pointnet[0].in_features == 6
+    pc, pos = inputs((2,), channels=6)
+    base = enc.encode(pc, pos)
+    recoloured = pc.clone()
+    recoloured[..., 3:] = torch.rand_like(recoloured[..., 3:])
+    assert not torch.allclose(enc.encode(recoloured, pos), base)
+    with pytest.raises(ValueError, match=r"point_cloud must be \[\*, P, 6\]"):
+        enc.encode(*inputs((2,), channels=3))
+
+
+def test_dp3_without_color_ignores_rgb_channels():
+    enc = build("dp3")
+    pc, pos = inputs((2,), channels=6)
+    torch.testing.assert_close(enc.encode(pc, pos), enc.encode(pc[..., :3].contiguous(), pos))
+
+
+def test_dp3_rejects_mismatched_leading_dims():
+    enc = build("dp3")
+    pc, _ = inputs((2, 3))
+    with pytest.raises(ValueError, match="agent_pos must be"):
+        enc.encode(pc, torch.randn(3, AGENT_POS_DIM))
+
+
+@pytest.mark.parametrize("name", ["dp3", "state_mlp"])
+def test_gradients_reach_every_parameter(name):
+    enc = build(name)
+    enc.encode(*inputs((4,))).square().sum().backward()
+    for pname, p in enc.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, pname
+
+
+@pytest.mark.parametrize(
+    "name, options",
+    [("dp3", {"use_color": True, "final_norm": "none", "state_channels": [32, 16]}), ("state_mlp", {"hidden": [8]})],
+)
+def test_config_round_trip_and_state_dict_reload(name, options):
+    plugin = get("encoder", name)
+    cfg = from_dict(plugin.config_cls, options)
+    again = from_dict(plugin.config_cls, to_dict(cfg))
+    assert again == cfg
+    torch.manual_seed(0)
+    enc = plugin.factory(cfg, agent_pos_dim=AGENT_POS_DIM)
+    torch.manual_seed(1)
+    rebuilt = plugin.factory(again, agent_pos_dim=AGENT_POS_DIM)
+    pc, pos = inputs((3,), channels=6)
+    assert not torch.equal(rebuilt.encode(pc, pos), enc.encode(pc, pos))
+    rebuilt.load_state_dict(enc.state_dict())
+    assert torch.equal(rebuilt.encode(pc, pos), enc.encode(pc, pos))
+
+
+@pytest.mark.parametrize(
+    "name, options, message",
+    [
+        ("dp3", {"pointnet_channels": []}, r"pointnet_channels must be a non-empty list of positive widths; got \[\]"),
+        ("dp3", {"out_channels": 0}, "out_channels must be positive; got 0"),
+        ("dp3", {"final_norm": "batchnorm"}, "must be one of 'layernorm', 'none'; got 'batchnorm'"),
+        ("state_mlp", {"out_dim": -1}, "out_dim must be positive; got -1"),
+        ("state_mlp", {"hiden": [4]}, "did you mean 'hidden'"),
+    ],
+)
+def test_invalid_options_name_the_field(name, options, message):
+    with pytest.raises(RecipeError, match=message):
+        from_dict(get("encoder", name).config_cls, options)
+
+
+def test_bad_agent_pos_dim_raises():
+    with pytest.raises(ValueError, match="agent_pos_dim must be positive; got 0"):
+        build("dp3", agent_pos_dim=0)

@@ -1,0 +1,145 @@
+"""DreamDiffusionPolicy: shapes, the joint loss of Algorithm 1, DP3 equivalence, EMA."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from ddp import build
+from ddp.models.ema import ema_decay
+from ddp.schema import EMAConfig
+
+
+def batch_of(exp, batch_size=6, seed=0):
+    from ddp.data.sequence import SequenceDataset
+
+    ds = SequenceDataset(exp.episodes(), 16, pad_before=1, pad_after=7, keys=["point_cloud", "agent_pos", "action"])
+    idx = torch.randperm(len(ds), generator=torch.Generator().manual_seed(seed))[:batch_size]
+    return ds.batch(idx)
+
+
+@pytest.fixture
+def exp(tiny_recipe):
+    e = build(tiny_recipe)
+    eps = e.episodes()
+    e.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
+    return e
+
+
+def test_loss_terms_and_total(exp):
+    out = exp.model.loss(batch_of(exp), generator=torch.Generator().manual_seed(1))
+    assert set(out.keys()) == {"loss", "loss_bc", "loss_wm"}
+    assert torch.allclose(out["loss"], out["loss_bc"] + 1.0 * out["loss_wm"])
+    assert out["loss_bc"] > 0 and out["loss_wm"] > 0
+
+
+def test_world_model_weight_scales_the_total(tiny_recipe):
+    tiny_recipe["world_model"]["weight"] = 0.25
+    e = build(tiny_recipe)
+    out = e.model.loss(batch_of(e), generator=torch.Generator().manual_seed(1))
+    assert torch.allclose(out["loss"], out["loss_bc"] + 0.25 * out["loss_wm"])
+
+
+def _encoder_grad(model, loss):
+    model.zero_grad(set_to_none=True)
+    loss.backward()
+    return torch.cat([p.grad.flatten() for p in model.encoder.parameters() if p.grad is not None])
+
+
+def test_gradients_from_both_losses_reach_the_encoder(exp):
+    m, batch = exp.model, batch_of(exp)
+    g_bc = _encoder_grad(m, m.loss(batch, generator=torch.Generator().manual_seed(0))["loss_bc"])
+    g_wm = _encoder_grad(m, m.loss(batch, generator=torch.Generator().manual_seed(0))["loss_wm"])
+    assert g_bc.abs().sum() > 0 and g_wm.abs().sum() > 0
+    n_enc = sum(p.numel() for p in m.encoder.parameters())
+    assert g_bc.numel() == n_enc and g_wm.numel() == n_enc  # every encoder parameter gets a gradient
+    assert not torch.allclose(g_bc, g_wm)
+    # world-model targets are encoded too: the future observations influence L_WM
+    batch2 = batch.clone()
+    batch2["point_cloud"][:, 2:] += 0.05
+    l1 = m.loss(batch, generator=torch.Generator().manual_seed(0))["loss_wm"]
+    l2 = m.loss(batch2, generator=torch.Generator().manual_seed(0))["loss_wm"]
+    assert not torch.allclose(l1, l2)
+
+
+def test_lambda_zero_and_no_world_model_equal_dp3(tiny_recipe):
+    tiny_recipe["world_model"]["weight"] = 0.0
+    ddp0 = build(tiny_recipe)
+    tiny_recipe["world_model"]["enabled"] = False
+    dp3 = build(tiny_recipe)
+    assert dp3.model.world_model_net is None
+    # same shared weights (built from the same seed, loaded explicitly anyway)
+    dp3.model.load_state_dict({k: v for k, v in ddp0.model.state_dict().items() if not k.startswith("world_model")})
+    batch = batch_of(ddp0)
+    out0 = ddp0.model.loss(batch, generator=torch.Generator().manual_seed(3))
+    out1 = dp3.model.loss(batch, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(out0["loss"], out1["loss"]) and torch.equal(out0["loss_bc"], out1["loss_bc"])
+    g0 = _encoder_grad(ddp0.model, out0["loss"])
+    g1 = _encoder_grad(dp3.model, out1["loss"])
+    torch.testing.assert_close(g0, g1, rtol=1e-5, atol=1e-7)  # encoder batch differs (M vs M+N frames)
+
+
+@pytest.mark.parametrize("batch_shape", [(2,), (2, 3)])
+def test_inference_shapes_over_batch_dims(exp, batch_shape):
+    m = exp.model.eval()
+    pc = torch.rand(*batch_shape, 2, 64, 3)
+    pos = torch.rand(*batch_shape, 2, 9)
+    td = m(TensorDict({"point_cloud": pc, "agent_pos": pos}, batch_size=batch_shape))
+    assert td["latent"].shape == (*batch_shape, 2, m.latent_dim)
+    assert td["action_chunk"].shape == (*batch_shape, 16, 4)
+    assert td["action"].shape == (*batch_shape, 8, 4)
+    assert torch.equal(td["action"], td["action_chunk"][..., 1:9, :])
+    future = m.imagine(td["latent"], td["action"])
+    assert future.shape == (*batch_shape, 8, m.latent_dim)
+
+
+def test_sampling_is_seeded(exp):
+    m = exp.model.eval()
+    hist = torch.randn(3, 2, m.latent_dim)
+    a1 = m.sample_actions(hist, generator=torch.Generator().manual_seed(5))
+    a2 = m.sample_actions(hist, generator=torch.Generator().manual_seed(5))
+    a3 = m.sample_actions(hist, generator=torch.Generator().manual_seed(6))
+    assert torch.equal(a1, a2) and not torch.equal(a1, a3)
+
+
+def test_imagine_without_world_model_raises(tiny_recipe):
+    tiny_recipe["world_model"]["enabled"] = False
+    m = build(tiny_recipe).model
+    with pytest.raises(RuntimeError, match="no world model"):
+        m.imagine(torch.zeros(1, 2, m.latent_dim), torch.zeros(1, 8, 4))
+
+
+def test_normalizer_maps_to_unit_range_and_back(exp):
+    n = exp.model.normalizer
+    act = exp.episodes().steps["action"]
+    z = n.normalize("action", act)
+    assert z.min() >= -1 - 1e-5 and z.max() <= 1 + 1e-5
+    assert torch.allclose(n.unnormalize("action", z), act, atol=1e-5)
+    # statistics live in the state dict
+    assert "normalizer.action_scale" in exp.model.state_dict() and bool(n.fitted)
+
+
+def test_ema_decay_schedule():
+    cfg = EMAConfig(power=0.75, max_value=0.9999)
+    assert ema_decay(1, cfg) == 0.0
+    assert ema_decay(2, cfg) == pytest.approx(1 - 2 ** -0.75)
+    assert ema_decay(10_000_000, cfg) == 0.9999
+    assert ema_decay(5, EMAConfig(update_after_step=10)) == 0.0
+
+
+def test_ema_tracks_the_weights(exp):
+    from ddp.models.ema import EMA
+
+    m = exp.model
+    ema = EMA(m, exp.recipe.ema)
+    p0 = next(ema.module.parameters()).clone()
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(1.0)
+    ema.update(m)  # first update: decay 0 -> copy
+    assert torch.allclose(next(ema.module.parameters()), p0 + 1.0)
+    with torch.no_grad():
+        for p in m.parameters():
+            p.add_(1.0)
+    d = ema.update(m)
+    assert 0 < d < 1
+    assert torch.allclose(next(ema.module.parameters()), p0 + 1.0 + (1 - d))

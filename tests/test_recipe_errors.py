@@ -1,0 +1,174 @@
+"""Bad recipes and overrides give one-line errors naming the file and the dotted key."""
+
+import textwrap
+
+import pytest
+
+from ddp import build
+from ddp.errors import RecipeError
+
+
+def write(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def error_of(recipe, overrides=()):
+    with pytest.raises(RecipeError) as info:
+        build(recipe, overrides)
+    msg = str(info.value)
+    assert "\n" not in msg, msg
+    return msg
+
+
+@pytest.fixture
+def good(tmp_path, tiny_recipe):
+    import yaml
+
+    path = tmp_path / "good.yaml"
+    path.write_text(yaml.safe_dump(tiny_recipe))
+    return path
+
+
+def test_unknown_plugin_name_lists_closest_and_known(tmp_path, good):
+    p = write(tmp_path, "r.yaml", "base: good.yaml\npolicy:\n  scheduler:\n    name: dimm\n")
+    msg = error_of(p)
+    assert msg.startswith(f"{p}: policy.scheduler.name: unknown scheduler 'dimm'")
+    assert "did you mean 'ddim'" in msg and "known: consistency_flow, ddim, ddpm" in msg
+
+
+def test_unknown_option_suggests_closest(tmp_path, good):
+    p = write(tmp_path, "r.yaml", "base: good.yaml\npolicy:\n  scheduler:\n    num_inference_step: 5\n")
+    msg = error_of(p)
+    assert f"{p}: policy.scheduler.num_inference_step: unknown option; did you mean 'num_inference_steps'?" in msg
+
+
+def test_wrong_type(tmp_path, good):
+    p = write(tmp_path, "r.yaml", "base: good.yaml\ntrain:\n  batch_size: lots\n")
+    msg = error_of(p)
+    assert msg.startswith(f"{p}: train.batch_size: expected int, got 'lots'")
+
+
+def test_wrong_type_in_plugin_list(tmp_path, good):
+    p = write(tmp_path, "r.yaml", "base: good.yaml\nworld_model:\n  denoiser:\n    down_dims: [16, x]\n")
+    assert f"{p}: world_model.denoiser.down_dims[1]: expected int" in error_of(p)
+
+
+def test_missing_required_option(tmp_path):
+    p = write(tmp_path, "r.yaml", "seed: 3\n")
+    assert error_of(p) == f"{p}: name: missing required option"
+
+
+def test_missing_plugin_name(tmp_path, good):
+    import yaml
+
+    p = tmp_path / "r.yaml"
+
+    data = yaml.safe_load(good.read_text())
+    data["encoder"] = {"out_channels": 32}
+    p.write_text(yaml.safe_dump(data))
+    msg = error_of(p)
+    assert msg.startswith(f"{p}: encoder.name: missing required option 'name'") and "dp3" in msg
+
+
+def test_unknown_top_level_section(tmp_path, good):
+    p = write(tmp_path, "r.yaml", "base: good.yaml\npolcy: {}\n")
+    assert f"{p}: polcy: unknown option; did you mean 'policy'?" in error_of(p)
+
+
+def test_bad_literal_choice(tmp_path, good):
+    p = write(tmp_path, "r.yaml", "base: good.yaml\npolicy:\n  scheduler:\n    prediction_type: epsilonn\n")
+    msg = error_of(p)
+    assert f"{p}: policy.scheduler.prediction_type: must be one of" in msg and "did you mean 'epsilon'" in msg
+
+
+def test_cross_field_rule(tmp_path, good):
+    p = write(tmp_path, "r.yaml", "base: good.yaml\npolicy:\n  horizon: 4\n")
+    msg = error_of(p)
+    assert msg.startswith(f"{p}: policy: horizon must be >= obs_steps + action_steps - 1 = 9")
+
+
+def test_bad_base_path(tmp_path):
+    p = write(tmp_path, "r.yaml", "base: nowhere.yaml\nname: x\n")
+    msg = error_of(p)
+    assert msg.startswith(f"{p}: base: base recipe") and "nowhere.yaml' not found" in msg
+
+
+def test_cyclic_base(tmp_path):
+    write(tmp_path, "a.yaml", "base: b.yaml\nname: a\n")
+    write(tmp_path, "b.yaml", "base: a.yaml\n")
+    msg = error_of(tmp_path / "a.yaml")
+    assert "base: cyclic base:" in msg and "a.yaml -> " in msg
+
+
+def test_malformed_yaml_has_line_number(tmp_path):
+    p = write(tmp_path, "r.yaml", "name: x\npolicy:\n  horizon: [16\n  obs_steps: 2\n")
+    msg = error_of(p)
+    assert msg.startswith(f"{p}: malformed YAML at line 4")
+
+
+def test_recipe_not_a_mapping(tmp_path):
+    p = write(tmp_path, "r.yaml", "- a\n- b\n")
+    assert error_of(p) == f"{p}: a recipe must be a YAML mapping, got list"
+
+
+def test_recipe_file_not_found(tmp_path):
+    p = tmp_path / "missing.yaml"
+    assert error_of(p) == f"{p}: recipe file not found"
+
+
+@pytest.mark.parametrize(
+    "override, expected",
+    [
+        ("policy.horizon", "--set: bad override 'policy.horizon': expected key.path=value"),
+        ("policy..horizon=3", "--set: bad override 'policy..horizon=3': 'policy..horizon' is not a dotted key like a.b.c"),
+        ("policy.horizon=[1", "--set: policy.horizon: bad override 'policy.horizon=[1': the value is not valid YAML"),
+        ("name.sub=1", "--set: name.sub: cannot set 'name.sub': 'name' is 'tiny', not a mapping"),
+    ],
+)
+def test_bad_override_syntax(good, override, expected):
+    assert error_of(good, [override]) == expected
+
+
+def test_override_value_is_validated_against_the_file(good):
+    msg = error_of(good, ["policy.scheduler.num_inference_steps=0"])
+    assert msg.startswith(f"{good}: policy.scheduler") and "num_inference_steps" in msg
+
+
+def test_plugin_module_that_does_not_import(tmp_path, good):
+    p = write(tmp_path, "r.yaml", "base: good.yaml\nplugins: [no_such_ddp_plugin_module]\n")
+    msg = error_of(p)
+    assert msg.startswith(f"{p}: plugins[0]: cannot import plugin module 'no_such_ddp_plugin_module'")
+
+
+def test_base_merge_rules(tmp_path, good):
+    p = write(
+        tmp_path, "r.yaml",
+        """
+        base: good.yaml
+        name: child
+        policy:
+          denoiser:
+            down_dims: [8, 16]        # lists replace
+          scheduler:
+            name: consistency_flow    # another part: the base's ddim options are dropped
+        """,
+    )
+    exp = build(p, ["train.epochs=7"])
+    r = exp.resolved
+    assert r["name"] == "child" and r["train"]["epochs"] == 7 and r["train"]["batch_size"] == 16
+    assert r["policy"]["denoiser"]["down_dims"] == [8, 16] and r["policy"]["denoiser"]["n_groups"] == 4
+    assert r["policy"]["scheduler"]["name"] == "consistency_flow" and "prediction_type" not in r["policy"]["scheduler"]
+
+
+def test_resolved_recipe_rebuilds_identically(tmp_path, good):
+    import torch
+
+    exp = build(good, ["policy.scheduler.num_inference_steps=5"])
+    assert exp.parts["policy.scheduler"].config.num_inference_steps == 5
+    dumped = exp.save_recipe(tmp_path / "resolved.yaml")
+    again = build(dumped)
+    assert again.to_yaml() == exp.to_yaml()
+    sd1, sd2 = exp.model.state_dict(), again.model.state_dict()
+    assert sd1.keys() == sd2.keys() and all(torch.equal(sd1[k], sd2[k]) for k in sd1)

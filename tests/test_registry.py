@@ -1,0 +1,114 @@
+"""The registry: explicit names, duplicates rejected, listing, entry-point plugins."""
+
+import subprocess
+import sys
+import textwrap
+from dataclasses import dataclass
+
+import pytest
+
+import ddp
+from ddp import registry
+from ddp.errors import PluginError, RecipeError
+
+
+def test_builtin_parts_are_registered():
+    assert {"dp3", "state_mlp"} <= set(ddp.list_plugins("encoder"))
+    assert {"unet1d", "unet1d_wm"} <= set(ddp.list_plugins("denoiser"))
+    assert {"ddpm", "ddim", "consistency_flow"} <= set(ddp.list_plugins("scheduler"))
+    assert "synthetic_reach" in ddp.list_plugins("dataset")
+    assert ddp.list_plugins("scheduler", "dd*") == ["ddim", "ddpm"]
+    assert set(ddp.list_plugins()) == set(registry.KINDS)
+
+
+def test_register_lookup_and_duplicate():
+    @dataclass
+    class Cfg:
+        tau: float = 0.1
+
+    try:
+        @ddp.register("detector", "test_threshold")
+        class Threshold:
+            """A test detector."""
+
+            Config = Cfg
+
+            def __init__(self, config):
+                self.config = config
+
+        plugin = registry.get("detector", "test_threshold")
+        assert plugin.factory is Threshold and plugin.config_cls is Cfg and plugin.summary == "A test detector."
+        with pytest.raises(PluginError, match="registered twice"):
+            ddp.register("detector", "test_threshold")(Threshold)
+    finally:
+        registry.unregister("detector", "test_threshold")
+    assert "test_threshold" not in ddp.list_plugins("detector")
+
+
+def test_register_requires_config_dataclass():
+    with pytest.raises(PluginError, match="must declare a config dataclass"):
+        ddp.register("tracker", "no_config")(type("NoConfig", (), {}))
+
+
+def test_unknown_kind_and_name():
+    with pytest.raises(PluginError, match="unknown plugin kind 'encoders'; did you mean 'encoder'"):
+        ddp.list_plugins("encoders")
+    with pytest.raises(RecipeError, match=r"unknown encoder 'dp4'; did you mean 'dp3'\? \(known: dp3, state_mlp"):
+        registry.get("encoder", "dp4")
+
+
+def _install_fake_dist(site, dist, module, body, ep_name):
+    """Lay a package out as pip installs it: module + <dist>.dist-info with entry_points.txt."""
+    (site / f"{module}.py").write_text(textwrap.dedent(body))
+    info = site / f"{dist}-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {dist}\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(f"[ddp.plugins]\n{ep_name} = {module}\n")
+    (info / "RECORD").write_text("")
+
+
+def test_entry_point_plugins_are_discovered_and_failures_named(tmp_path):
+    site = tmp_path / "site"
+    site.mkdir()
+    _install_fake_dist(
+        site, "ddp_extra_detector", "ddp_extra_detector",
+        """
+        from dataclasses import dataclass
+        import ddp
+
+        @dataclass
+        class NoisyConfig:
+            sigma: float = 0.5
+
+        @ddp.register("detector", "noisy_threshold", config=NoisyConfig)
+        class NoisyThreshold:
+            '''Flags OOD at random (an entry-point test plugin).'''
+            def __init__(self, config):
+                self.config = config
+        """,
+        "noisy",
+    )
+    _install_fake_dist(site, "ddp_broken", "ddp_broken_plugin", "raise ImportError('needs libfoo')\n", "broken")
+    script = textwrap.dedent(
+        """
+        import warnings
+        warnings.simplefilter("always")
+        import ddp
+        from ddp import registry
+        with warnings.catch_warnings(record=True) as caught:
+            names = ddp.list_plugins("detector")
+        print("NAMES", names)
+        print("WARN", [str(w.message) for w in caught])
+        print("CFG", registry.get("detector", "noisy_threshold").config_cls.__name__)
+        try:
+            registry.get("detector", "noisy_treshold")
+        except Exception as err:
+            print("ERR", err)
+        """
+    )
+    env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True).stdout
+    assert "'noisy_threshold'" in out.split("NAMES")[1].splitlines()[0]
+    assert "ddp plugin 'broken' (ddp_broken_plugin) failed to import: ImportError: needs libfoo" in out
+    assert "CFG NoisyConfig" in out
+    assert "did you mean 'noisy_threshold'" in out and "failed to import: broken" in out

@@ -1,0 +1,128 @@
+"""Training: the joint loss drops, checkpoints round-trip, resume equals an uninterrupted run."""
+
+import os
+
+import pytest
+import torch
+
+from ddp import build
+from ddp.checkpoint import load_checkpoint, save_checkpoint
+from ddp.errors import CheckpointError
+from ddp.experiment import experiment_from_checkpoint
+
+
+def test_joint_loss_drops_on_a_tiny_dataset(tiny_recipe, tmp_path):
+    tiny_recipe["train"].update(epochs=100, max_steps=120, lr=2e-3, warmup_steps=10, log_every_steps=1000)
+    exp = build(tiny_recipe)
+    history = []
+    orig = exp.model.loss
+
+    def recording_loss(batch, generator=None):
+        out = orig(batch, generator=generator)
+        history.append((out["loss_bc"].item(), out["loss_wm"].item()))
+        return out
+
+    exp.model.loss = recording_loss
+    exp.train(output_dir=tmp_path, progress=False)
+    first = torch.tensor(history[:15]).mean(0)
+    last = torch.tensor(history[-15:]).mean(0)
+    assert len(history) == 120
+    assert last[0] < 0.5 * first[0], (first, last)  # L_BC
+    assert last[1] < 0.5 * first[1], (first, last)  # L_WM
+
+
+def _weights(exp):
+    return {k: v.clone() for k, v in exp.model.state_dict().items()}
+
+
+def test_resume_after_interruption_equals_uninterrupted_run(tiny_recipe, tmp_path):
+    full = build(tiny_recipe)
+    res = full.train(output_dir=tmp_path / "full", progress=False)
+    assert res.epochs == 3 and res.steps > 3
+    reference = _weights(full)
+    ref_ema = load_checkpoint(tmp_path / "full/last.pt")["ema"]
+
+    interrupted = build(tiny_recipe)
+    orig, calls = interrupted.model.loss, {"n": 0}
+
+    def failing_loss(batch, generator=None):
+        calls["n"] += 1
+        if calls["n"] == res.steps // 2 + 1:
+            raise KeyboardInterrupt
+        return orig(batch, generator=generator)
+
+    interrupted.model.loss = failing_loss
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.train(output_dir=tmp_path / "resumed", progress=False)
+    assert load_checkpoint(tmp_path / "resumed/last.pt")["step"] == res.steps // 2
+
+    resumed = build(tiny_recipe)
+    res2 = resumed.train(output_dir=tmp_path / "resumed", progress=False)
+    assert res2.steps == res.steps
+    for k, v in _weights(resumed).items():
+        assert torch.equal(v, reference[k]), k
+    ema = load_checkpoint(tmp_path / "resumed/last.pt")["ema"]
+    assert all(torch.equal(ema[k], ref_ema[k]) for k in ref_ema)
+
+
+def test_checkpoint_round_trip_gives_identical_outputs(tiny_recipe, tmp_path):
+    exp = build(tiny_recipe)
+    exp.train(output_dir=tmp_path, progress=False)
+    exp.load_checkpoint(tmp_path / "last.pt")  # EMA weights
+    again = experiment_from_checkpoint(tmp_path / "last.pt")
+    assert again.to_yaml() == exp.to_yaml()
+    hist = torch.randn(2, 2, exp.model.latent_dim)
+    a = exp.model.eval().sample_actions(hist, generator=torch.Generator().manual_seed(0))
+    b = again.model.eval().sample_actions(hist, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(a, b)
+    acts = torch.randn(2, 8, 4)
+    assert torch.equal(
+        exp.model.imagine(hist, acts, generator=torch.Generator().manual_seed(1)),
+        again.model.imagine(hist, acts, generator=torch.Generator().manual_seed(1)),
+    )
+    raw = experiment_from_checkpoint(tmp_path / "last.pt", ema=False)
+    assert not torch.equal(raw.model.sample_actions(hist, generator=torch.Generator().manual_seed(0)), a)
+
+
+def test_truncated_and_foreign_files_are_refused(tmp_path):
+    good = save_checkpoint(tmp_path / "good.pt", {"model": {"w": torch.ones(1000)}, "step": 1})
+    assert load_checkpoint(good)["step"] == 1
+    blob = good.read_bytes()
+    (tmp_path / "trunc.pt").write_bytes(blob[: len(blob) // 2])
+    with pytest.raises(CheckpointError, match="trunc.pt: not a readable checkpoint"):
+        load_checkpoint(tmp_path / "trunc.pt")
+    (tmp_path / "text.pt").write_text("hello")
+    with pytest.raises(CheckpointError, match="text.pt: not a readable checkpoint"):
+        load_checkpoint(tmp_path / "text.pt")
+    torch.save({"weights": torch.ones(2)}, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="foreign.pt: not a ddp checkpoint"):
+        load_checkpoint(tmp_path / "foreign.pt")
+    torch.save({"format": "ddp-checkpoint", "version": 1, "obj": torch.nn.Linear(1, 1)}, tmp_path / "pickled.pt")
+    with pytest.raises(CheckpointError, match="pickled.pt: refused to load"):
+        load_checkpoint(tmp_path / "pickled.pt")
+    with pytest.raises(CheckpointError, match="missing.pt: checkpoint not found"):
+        load_checkpoint(tmp_path / "missing.pt")
+
+
+def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
+    path = save_checkpoint(tmp_path / "c.pt", {"step": 1})
+
+    def broken_save(obj, f, *a, **k):
+        f.write(b"partial")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", broken_save)
+    with pytest.raises(OSError):
+        save_checkpoint(path, {"step": 2})
+    monkeypatch.undo()
+    assert load_checkpoint(path)["step"] == 1
+    assert os.listdir(tmp_path) == ["c.pt"]
+
+
+def test_weights_of_another_recipe_are_refused(tiny_recipe, tmp_path):
+    exp = build(tiny_recipe)
+    exp.train(output_dir=tmp_path, progress=False)
+    tiny_recipe["policy"]["denoiser"]["down_dims"] = [8, 16]
+    other = build(tiny_recipe)
+    with pytest.raises(CheckpointError, match="weights do not fit this recipe's model"):
+        other.load_checkpoint(tmp_path / "last.pt")
