@@ -46,7 +46,19 @@ class Experiment:
 
     def dataset(self):
         """The recipe's data source plugin (``data.name``)."""
-        return self.parts["data"].build(task=self.recipe.task, seed=self.recipe.seed)
+        return self.parts["data"].build(task=self.recipe.task, seed=self.recipe.seed, env=self.parts.get("env"))
+
+    def make_env(self, seed: int | None = None, **overrides):
+        """A new environment from the recipe's ``env`` section (``overrides`` replace config fields)."""
+        import dataclasses
+
+        from ddp.errors import RecipeError
+
+        part = self.parts.get("env")
+        if part is None:
+            raise RecipeError("this recipe has no env section", source=self.source, key="env")
+        config = dataclasses.replace(part.config, **overrides) if overrides else part.config
+        return part.plugin.factory(config, seed=seed)
 
     def episodes(self):
         """The demonstrations (loaded once and cached)."""
@@ -73,6 +85,42 @@ class Experiment:
             first = str(err).strip().splitlines()[0]
             raise CheckpointError(f"{path}: weights do not fit this recipe's model: {first}") from None
         return self
+
+    def make_controller(self, *, detector: dict | None = None, imagine: bool | None = None,
+                        track: bool | None = None, tracker: bool = True, seed: int | None = None):
+        """The DDP controller (Algorithm 2) around ``model`` from the recipe's ``controller`` section.
+
+        ``detector`` replaces the recipe's detector section (e.g. ``{"name": "never"}``); ``imagine``
+        / ``track`` override the recipe's flags; ``tracker=False`` drops tracking and recovery.
+        """
+        from ddp.inference import DDPController, Subtask
+        from ddp.schema import resolve_part
+
+        c = self.recipe.controller
+        det_part = self.parts["controller.detector"]
+        if detector is not None:
+            det_part = resolve_part("detector", detector, key="controller.detector", source="<protocol>")
+        trk_part = self.parts.get("controller.tracker") if tracker else None
+        subtasks = [
+            Subtask(target=s.target, trigger=self.parts[f"controller.subtasks[{i}].trigger"].build() if s.trigger else None)
+            for i, s in enumerate(c.subtasks)
+        ]
+        return DDPController(
+            self.model.eval(),
+            detector=det_part.build(),
+            tracker=trk_part.build() if trk_part is not None else None,
+            recovery=self.parts["controller.recovery"].build() if tracker else None,
+            subtasks=subtasks,
+            imagine=c.imagine if imagine is None else imagine,
+            track=c.track if track is None else track,
+            seed=self.recipe.seed if seed is None else seed,
+        )
+
+    def evaluate(self, protocols=None, **kwargs):
+        """Run evaluation protocols; see :func:`ddp.evaluate.evaluate`."""
+        from ddp.evaluate import evaluate
+
+        return evaluate(self, protocols, **kwargs)
 
     def parameter_counts(self) -> dict[str, int]:
         """Parameters per part (encoder, policy, world model) and in total."""

@@ -31,6 +31,7 @@ KINDS: dict[str, tuple[str, str]] = {
     "detector": ("ddp.detectors", "decides ID vs OOD from real and imagined latents"),
     "tracker": ("ddp.trackers", "estimates how far displaced objects moved"),
     "recovery": ("ddp.recovery", "undoes tracking shifts at subtask ends"),
+    "trigger": ("ddp.triggers", "decides when a subtask has ended (gripper closure, timer, chunk index)"),
     "env": ("ddp.envs", "TorchRL environments (simulated or real)"),
 }
 

@@ -116,6 +116,49 @@ class TrainConfig:
 
 
 @dataclass
+class SubtaskSpec:
+    """A subtask S_j: its target object C_j (index into the env's object list) and completion trigger."""
+
+    target: int | None = 0
+    trigger: dict | None = None  # a trigger plugin section; null = the subtask lasts until the episode ends
+
+
+@dataclass
+class ControllerConfig:
+    """The inference controller (paper Algorithm 2): which detector, tracker and recovery to use."""
+
+    detector: dict = field(default_factory=lambda: {"name": "discrepancy"})
+    tracker: dict | None = field(default_factory=lambda: {"name": "oracle"})
+    recovery: dict = field(default_factory=lambda: {"name": "target_specific"})
+    subtasks: list[SubtaskSpec] = field(default_factory=lambda: [SubtaskSpec()])
+    imagine: bool = True  # act from imagined latents in OOD mode (false: the tracking-only DP3 ablation)
+    track: bool = True  # execute the tracking shift a^track on an OOD event
+    safe_lift: float = 0.0  # lift (m) before an end-effector shift, to avoid dragging through the table
+
+
+@dataclass
+class EvalConfig:
+    """Evaluation protocols and their budget (``ddp eval``)."""
+
+    protocols: list[str] = field(default_factory=lambda: ["id", "ood_tracking", "ood_ddp"])
+    episodes: int = 20
+    seed: int = 1000  # first environment seed; episode i uses seed + i
+    num_envs: int = 1
+    max_steps: int | None = None  # env steps per episode (default: the env's own limit)
+    calibration_episodes: int = 5  # ID episodes used to calibrate a null discrepancy tau
+    occlusion_chunk: int = 3
+    occlusion_chunks: int = 2
+    video: bool = False
+    output_dir: str = "runs/{name}/eval"
+
+    def __post_init__(self):
+        if self.episodes < 1:
+            raise ValueError(f"episodes must be >= 1; got {self.episodes}")
+        if self.num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1; got {self.num_envs}")
+
+
+@dataclass
 class Recipe:
     """A whole experiment. ``ddp.build(path)`` validates a YAML file into this."""
 
@@ -129,6 +172,9 @@ class Recipe:
     ema: EMAConfig = field(default_factory=EMAConfig)
     data: dict = field(default_factory=lambda: {"name": "synthetic_reach"})
     train: TrainConfig = field(default_factory=TrainConfig)
+    env: dict | None = None  # the environment plugin (evaluation, demo generation)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
 
 
 #: recipe sections holding one plugin each: dotted key -> kind
@@ -139,7 +185,14 @@ PART_SECTIONS: dict[str, str] = {
     "world_model.denoiser": "denoiser",
     "world_model.scheduler": "scheduler",
     "data": "dataset",
+    "env": "env",
+    "controller.detector": "detector",
+    "controller.tracker": "tracker",
+    "controller.recovery": "recovery",
 }
+
+#: plugin sections that may be null
+OPTIONAL_SECTIONS = {"env", "controller.tracker"}
 
 
 @dataclass
@@ -198,7 +251,15 @@ def validate(data: dict, source: str | None) -> tuple[Recipe, dict[str, Part], d
     resolved = to_dict(recipe)
     parts: dict[str, Part] = {}
     for dotted, kind in PART_SECTIONS.items():
+        if dotted in OPTIONAL_SECTIONS and _get(resolved, dotted) is None:
+            continue
         part = resolve_part(kind, _get(resolved, dotted), key=dotted, source=source)
         parts[dotted] = part
         _set(resolved, dotted, part.as_dict())
+    for i, sub in enumerate(resolved["controller"]["subtasks"]):
+        if sub["trigger"] is not None:
+            key = f"controller.subtasks[{i}].trigger"
+            part = resolve_part("trigger", sub["trigger"], key=key, source=source)
+            parts[key] = part
+            sub["trigger"] = part.as_dict()
     return recipe, parts, resolved

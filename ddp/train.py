@@ -144,7 +144,7 @@ class Trainer:
                     batch_in_epoch += 1
                     samples += idx.numel()
                     for k in sums:
-                        sums[k] += float(losses[k])
+                        sums[k] += losses[k].detach().item()
                     count += 1
                     bar.update(1)
                     if step % cfg.log_every_steps == 0 or step == total:

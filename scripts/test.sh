@@ -4,7 +4,7 @@
 #   bash scripts/test.sh --slow    # only the slow tests
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh dev
+bash scripts/setup.sh dev,metaworld
 VENV="${DDP_VENV:-.venv}"
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
 if [ "${1:-}" = "--slow" ]; then

@@ -29,7 +29,8 @@ TINY = {
                      "blocks_per_level": 1, "mid_blocks": 1},
         "scheduler": {"name": "ddim", "num_inference_steps": 4, "clip_sample": False, "prediction_type": "sample"},
     },
-    "data": {"name": "synthetic_reach", "episodes": 4, "table_points": 64, "cube_points": 48, "gripper_points": 16},
+    "data": {"name": "synthetic_reach", "episodes": 4},
+    "env": {"name": "synthetic_reach", "num_points": 64, "table_points": 64, "cube_points": 48, "gripper_points": 16},
     "train": {"batch_size": 16, "lr": 1e-3, "warmup_steps": 5, "epochs": 3, "checkpoint_every_epochs": 1,
               "log_every_steps": 5},
 }

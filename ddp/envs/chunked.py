@@ -1,0 +1,123 @@
+"""One environment step = one action chunk: what the DDP controller talks to.
+
+``ChunkedEnv(base, action_steps=N, obs_steps=M)`` wraps a one-action-per-step
+TorchRL env. Its action is ``action`` [N, A] plus ``ee_shift`` [3] (an
+end-effector shift requested by the controller's tracking or recovery, zero
+for none), executed *before* the chunk through ``base.shift_end_effector``.
+Observations are the base env's stacked over the last M steps
+(``point_cloud`` [M, P, 3], ``agent_pos`` [M, D]), ``privileged`` from the
+last step, ``success`` = any success so far in the episode, ``reward`` = the
+chunk's sum, and ``chunk_index`` (chunks executed since reset).
+
+When the base env's config has ``obs_every`` / ``obs_history`` fields they
+are set to N / M, so point clouds are rendered only for the frames the
+policy consumes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+STACKED = ("point_cloud", "agent_pos")
+
+
+def chunk_render_config(config, action_steps: int, obs_steps: int):
+    """``config`` with rendering limited to the frames a chunked policy reads (when supported)."""
+    names = {f.name for f in dataclasses.fields(config)}
+    if {"obs_every", "obs_history"} <= names:
+        return dataclasses.replace(config, obs_every=action_steps, obs_history=obs_steps)
+    return config
+
+
+class ChunkedEnv(EnvBase):
+    """Executes N-step action chunks on ``base`` and returns the last M observations."""
+
+    def __init__(self, base: EnvBase, action_steps: int, obs_steps: int, safe_lift: float = 0.0):
+        super().__init__(device=base.device, batch_size=torch.Size([]))
+        if action_steps < obs_steps:
+            raise ValueError(f"action_steps ({action_steps}) must be >= obs_steps ({obs_steps})")
+        self.base = base
+        self.action_steps = action_steps
+        self.obs_steps = obs_steps
+        self.safe_lift = safe_lift
+        obs = base.observation_spec
+        spec = {}
+        for key in STACKED:
+            if key in obs.keys():
+                inner = obs[key]
+                spec[key] = Unbounded(shape=(obs_steps, *inner.shape), dtype=inner.dtype, device=self.device)
+        for key in obs.keys():
+            if key not in STACKED and key != "success":
+                spec[key] = obs[key].clone()
+        spec["success"] = Categorical(2, shape=(1,), dtype=torch.bool, device=self.device)
+        spec["chunk_index"] = Unbounded(shape=(1,), dtype=torch.int64, device=self.device)
+        self.observation_spec = Composite(spec, device=self.device)
+        a = base.action_spec
+        self.full_action_spec = Composite(
+            action=Bounded(
+                a.space.low.expand(action_steps, *a.shape), a.space.high.expand(action_steps, *a.shape),
+                shape=(action_steps, *a.shape), dtype=a.dtype, device=self.device,
+            ),
+            ee_shift=Unbounded(shape=(3,), dtype=torch.float32, device=self.device),
+            device=self.device,
+        )
+        self.reward_spec = base.reward_spec.clone()
+        self.done_spec = base.full_done_spec.clone()
+        self._frames: list[TensorDictBase] = []
+        self._chunk = 0
+        self._success = False
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.base.set_seed(seed)
+
+    def _observation(self, last: TensorDictBase) -> TensorDictBase:
+        frames = self._frames[-self.obs_steps :]
+        out = last.exclude(*STACKED, "reward", "done", "terminated", "truncated", "success")
+        for key in STACKED:
+            if key in last.keys():
+                out.set(key, torch.stack([f[key] for f in frames], 0))
+        out.set("success", torch.tensor([self._success], device=self.device))
+        out.set("chunk_index", torch.tensor([self._chunk], dtype=torch.int64, device=self.device))
+        return out
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        first = self.base.reset()
+        self._frames = [first] * self.obs_steps
+        self._chunk = 0
+        self._success = False
+        out = self._observation(first)
+        for key in ("done", "terminated", "truncated"):
+            out.set(key, torch.zeros(1, dtype=torch.bool, device=self.device))
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        shift = tensordict.get("ee_shift", None)
+        if shift is not None and bool(shift.abs().max() > 0):
+            self.base.shift_end_effector(shift.detach().cpu().numpy(), safe_lift=self.safe_lift)
+        actions = tensordict.get("action")
+        reward = torch.zeros(self.reward_spec.shape, device=self.device)
+        last = None
+        for a in actions:
+            step = self.base.step(TensorDict({"action": a}, batch_size=[], device=self.device))
+            last = step.get("next")
+            self._frames.append(last)
+            reward = reward + last.get("reward", torch.zeros_like(reward))
+            self._success = self._success or bool(last.get("success", torch.zeros(1, dtype=torch.bool)).any())
+            if bool(last.get("done").any()):
+                break
+        self._frames = self._frames[-self.obs_steps :]
+        self._chunk += 1
+        out = self._observation(last)
+        out.set("reward", reward)
+        for key in ("done", "terminated", "truncated"):
+            out.set(key, last.get(key))
+        return out
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        self.base.close()
+        super().close()

@@ -1,0 +1,567 @@
+"""MetaWorld v3 as a TorchRL env: DP3 point clouds and the paper's OOD protocol.
+
+Observations (root keys, float32 unless noted), as in DP3, which the paper
+follows for MetaWorld (Sec. 4, Appendix "Details of Simulation OOD
+Experiments"):
+
+* ``"point_cloud"`` ``[num_points, 3]``: depth from camera ``corner2``
+  re-posed at DP3's ``[0.6, 0.295, 0.8]``, back-projected to the world
+  frame, cropped to a workspace box and farthest-point-sampled (sites such
+  as the goal marker are hidden). Absent when ``render_point_cloud=False``.
+* ``"agent_pos"`` ``[9]``: hand position + ``rightEndEffector`` +
+  ``leftEndEffector`` site positions.
+* ``"success"`` (bool ``[1]``): MetaWorld's success flag at this step.
+* ``("privileged", ...)``: simulator truth for oracles, experts and logging:
+  ``"state"`` ``[39]`` (MetaWorld's state observation, goal not clipped),
+  ``"goal"`` ``[3]`` (the success target ``_target_pos``), ``"ee_offset"``
+  ``[3]`` (end-effector shift applied by the oracle so far), ``"task_index"``
+  (int64 ``[1]``, which of the 50 MT1 initial states), ``"occluded"`` (bool
+  ``[1]``, the cloud is the occlusion's blind one) and, for the paper's
+  ten tasks, ``"object_pos"`` ``[K, 3]`` and ``"displacement"`` ``[K, 3]``
+  (world position of, and displacement currently applied to, each
+  displaceable body in ``MetaWorldTask.bodies`` order).
+
+Plus ``"reward"``, ``"done"``, ``"terminated"`` (MetaWorld never terminates:
+True only at a success with ``terminate_on_success``) and ``"truncated"``
+(after ``max_episode_steps``).
+
+Rendering only what is consumed: a policy that executes chunks of ``N``
+actions and reads the last ``M`` observations of each chunk needs clouds at
+those steps only. ``obs_every=N, obs_history=M`` renders the cloud after
+``t`` actions iff ``t % N == 0`` or ``t % N > N - M`` (and at reset); the
+other steps return the previous cloud unchanged. This keeps the env a plain
+one-action-per-step TorchRL env, so it composes with ``MultiAction`` and
+``CatFrames`` (append ``CatFrames`` before ``MultiAction`` so it sees every
+step).
+
+Seeding: ``reset(seed=s)`` (or ``set_seed(s)`` then ``reset()``) selects MT1
+train task ``task_indices[0] + s % (stop - start)``; seeds 0..49 visit the 50
+ID initial states once each. Resets without a seed continue from the last
+seed + 1 (starting at the constructor's ``seed``, default 0). The same seed
+gives the same initial state, the same point clouds and, with the same
+actions, the same trajectory.
+
+Disturbances (``ddp.envs.disturbances``): with ``displacement=True`` the
+task's row of the paper's table is applied at the start of its chunk:
+free-joint bodies move through ``qpos`` (velocity zeroed), fixed bodies
+through ``model.body_pos``, and the success target moves where the goal is
+attached to the moved body. Every model edit is undone at the next reset.
+With ``oracle_tracking=True`` the env also runs the paper's oracle protocol:
+the end-effector follows the object at the displacement chunk (with a 5 cm
+"safe lift" for pick-place) and, on two-stage tasks, snaps back by
+``-delta`` at the snap-back chunk; the carried object's recorded
+displacement is then cleared. Each oracle move pauses the episode for
+``settle_steps`` simulated steps so the hand reaches its new target.
+``occlusion_chunk`` blinds the camera for ``occlusion_chunks`` chunks.
+
+Public methods for oracle tracker / recovery plugins:
+``shift_end_effector(delta, safe_lift=0.0, settle_steps=None)`` (returns the
+applied shift), ``displace_objects(delta)``; properties ``steps_done``,
+``task_index``, ``task`` (the ``MetaWorldTask`` or None) and ``sim`` (the raw
+MetaWorld env).
+"""
+
+from __future__ import annotations
+
+import atexit
+import functools
+import os
+import weakref
+
+# MuJoCo picks its OpenGL backend when it is first imported (torchrl imports
+# it too): render headless through EGL unless the user chose a backend.
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from dataclasses import dataclass  # noqa: E402
+from typing import Literal  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tensordict import TensorDict, TensorDictBase  # noqa: E402
+from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
+from torchrl.envs import EnvBase  # noqa: E402
+
+from ddp.envs.disturbances import OCCLUSION_MODES, Displacement, Occlusion  # noqa: E402
+from ddp.envs.metaworld_tasks import METAWORLD_V3_TASKS, PAPER_TASKS, MetaWorldTask, env_name  # noqa: E402
+from ddp.envs.pointcloud import DepthToCloud  # noqa: E402
+from ddp.errors import suggest  # noqa: E402
+from ddp.registry import register  # noqa: E402
+
+__all__ = ["MetaWorldEnvConfig", "MetaWorldEnv"]
+
+NUM_TRAIN_TASKS = 50  # MT1 builds 50 fixed initial states per task
+
+
+def _import_sim():
+    """Import metaworld and mujoco; make MuJoCo's renderer use EGL when MUJOCO_GL=egl.
+
+    If mujoco was imported before MUJOCO_GL was set (e.g. by ``import
+    torchrl`` ahead of ``ddp``), it chose GLFW, which needs a display; its
+    context class is then swapped for the EGL one.
+    """
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    try:
+        import metaworld
+        import mujoco
+    except ImportError as err:
+        raise ImportError(f'the MetaWorld env needs metaworld and mujoco ({err}): pip install "ddp[sim]"') from None
+    if os.environ["MUJOCO_GL"].lower() == "egl":
+        from mujoco import gl_context
+
+        if getattr(gl_context, "GLContext", None) is None or gl_context.GLContext.__module__ != "mujoco.egl":
+            from mujoco.egl import GLContext
+
+            gl_context.GLContext = GLContext
+    return metaworld, mujoco
+
+
+_OPEN_RENDERERS: weakref.WeakSet = weakref.WeakSet()
+_exit_hook_registered = False
+
+
+def _close_open_renderers() -> None:
+    for renderer in list(_OPEN_RENDERERS):
+        renderer.close()
+
+
+def _track_renderer(renderer) -> None:
+    """Close renderers of envs nobody closed before EGL shuts down at exit (no EGL errors at exit).
+
+    ``atexit`` runs hooks last-in first-out and MuJoCo registers EGL's
+    termination when its first context is created, so a hook registered after
+    that closes the renderers first.
+    """
+    global _exit_hook_registered
+    if not _exit_hook_registered:
+        atexit.register(_close_open_renderers)
+        _exit_hook_registered = True
+    _OPEN_RENDERERS.add(renderer)
+
+
+@functools.lru_cache(maxsize=None)
+def _train_tasks(task: str, seed: int) -> tuple:
+    """The 50 MT1 train tasks (initial states) of a task; cached, building them costs ~1 s."""
+    metaworld, _ = _import_sim()
+    return tuple(metaworld.MT1(env_name(task), seed=seed).train_tasks)
+
+
+@dataclass
+class MetaWorldEnvConfig:
+    """Options of the ``metaworld`` env (see the module docstring).
+
+    Attributes:
+        task: MetaWorld v3 task name without "-v3", e.g. ``"button-press"``.
+        seed_tasks: seed of ``metaworld.MT1`` (which 50 initial states exist).
+        task_indices: ``[start, stop)`` range of MT1 train tasks that resets draw from.
+        max_episode_steps: steps before ``truncated``.
+        terminate_on_success: end the episode (``terminated``) at the first success.
+        render_point_cloud: render the ``point_cloud`` key (False: state-only, fast).
+        image_size: depth image height = width in pixels (DP3 uses 128; 84 is faster).
+        camera: MuJoCo camera name.
+        camera_pos: world position the camera is moved to (None: keep the model's).
+        crop_min, crop_max: world-frame workspace box kept in the cloud.
+        num_points: points after farthest point sampling.
+        obs_every, obs_history: render the cloud after ``t`` actions iff
+            ``t % obs_every == 0`` or ``t % obs_every > obs_every - obs_history``.
+        chunk_len: actions per chunk; disturbance chunk ``k`` starts at step ``k * chunk_len``.
+        displacement: apply the paper's displacement for ``task``.
+        displacement_chunk, displacement_delta: override its chunk / vector.
+        oracle_tracking: apply the paper's oracle end-effector tracking (and snap-back).
+        settle_steps: MetaWorld steps simulated (not counted) after each oracle end-effector
+            move so the hand reaches it (per phase of a safe-lift move; 0 = bare mocap write).
+        occlusion_chunk: first blind chunk (None: no occlusion).
+        occlusion_chunks: number of blind chunks.
+        occlusion_mode: the blind cloud: ``"zeros"``, ``"drop"`` or ``"noise"``.
+    """
+
+    task: str = "button-press"
+    seed_tasks: int = 0
+    task_indices: tuple[int, int] = (0, NUM_TRAIN_TASKS)
+    max_episode_steps: int = 200
+    terminate_on_success: bool = False
+    render_point_cloud: bool = True
+    image_size: int = 84
+    camera: str = "corner2"
+    camera_pos: tuple[float, float, float] | None = (0.6, 0.295, 0.8)
+    crop_min: tuple[float, float, float] = (-0.6, 0.3, -0.01)
+    crop_max: tuple[float, float, float] = (0.6, 1.1, 0.7)
+    num_points: int = 512
+    obs_every: int = 1
+    obs_history: int = 1
+    chunk_len: int = 8
+    displacement: bool = False
+    displacement_chunk: int | None = None
+    displacement_delta: tuple[float, float, float] | None = None
+    oracle_tracking: bool = False
+    settle_steps: int = 10
+    occlusion_chunk: int | None = None
+    occlusion_chunks: int = 1
+    occlusion_mode: Literal["zeros", "drop", "noise"] = "zeros"
+
+    def __post_init__(self):
+        if self.task.endswith("-v3"):
+            self.task = self.task[: -len("-v3")]
+        if self.task not in METAWORLD_V3_TASKS:
+            raise ValueError(
+                f"task must be one of the MetaWorld v3 tasks; got {self.task!r}{suggest(self.task, METAWORLD_V3_TASKS)}"
+            )
+        start, stop = self.task_indices
+        if not 0 <= start < stop <= NUM_TRAIN_TASKS:
+            raise ValueError(f"task_indices must satisfy 0 <= start < stop <= 50; got {tuple(self.task_indices)}")
+        for name in ("max_episode_steps", "image_size", "num_points", "obs_every", "obs_history", "chunk_len"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1; got {getattr(self, name)}")
+        if self.image_size < 8:
+            raise ValueError(f"image_size must be >= 8 pixels; got {self.image_size}")
+        if self.obs_history > self.obs_every:
+            raise ValueError(f"obs_history ({self.obs_history}) must be <= obs_every ({self.obs_every})")
+        if len(self.crop_min) != 3 or len(self.crop_max) != 3:
+            raise ValueError(f"crop_min and crop_max need 3 entries; got {self.crop_min} and {self.crop_max}")
+        if any(lo >= hi for lo, hi in zip(self.crop_min, self.crop_max)):
+            raise ValueError(f"crop_min must be below crop_max on every axis; got {self.crop_min} and {self.crop_max}")
+        if self.settle_steps < 0:
+            raise ValueError(f"settle_steps must be >= 0; got {self.settle_steps}")
+        overrides = self.displacement_chunk is not None or self.displacement_delta is not None
+        if (self.displacement or self.oracle_tracking or overrides) and self.task not in PAPER_TASKS:
+            raise ValueError(
+                f"displacement and oracle_tracking need one of the paper's tasks ({', '.join(PAPER_TASKS)}); "
+                f"got task {self.task!r}"
+            )
+        if overrides and not self.displacement:
+            raise ValueError("displacement_chunk / displacement_delta are set but displacement is False")
+        if self.oracle_tracking and not self.displacement:
+            raise ValueError("oracle_tracking=True needs displacement=True (it tracks the displaced object)")
+        if self.displacement_chunk is not None and self.displacement_chunk < 0:
+            raise ValueError(f"displacement_chunk must be >= 0; got {self.displacement_chunk}")
+        if self.displacement_delta is not None and len(self.displacement_delta) != 3:
+            raise ValueError(f"displacement_delta needs 3 entries; got {self.displacement_delta}")
+        if self.occlusion_chunk is not None and self.occlusion_chunk < 0:
+            raise ValueError(f"occlusion_chunk must be >= 0; got {self.occlusion_chunk}")
+        if self.occlusion_chunks < 1:
+            raise ValueError(f"occlusion_chunks must be >= 1; got {self.occlusion_chunks}")
+        if self.occlusion_mode not in OCCLUSION_MODES:
+            raise ValueError(f"occlusion_mode must be one of {OCCLUSION_MODES}; got {self.occlusion_mode!r}")
+        if self.occlusion_chunk is not None and not self.render_point_cloud:
+            raise ValueError("occlusion_chunk needs render_point_cloud=True (it corrupts the point cloud)")
+
+    @property
+    def task_spec(self) -> MetaWorldTask | None:
+        """The task's row of the paper's table (None outside the ten tasks)."""
+        return PAPER_TASKS.get(self.task)
+
+    def displacement_schedule(self) -> Displacement | None:
+        if not self.displacement:
+            return None
+        return self.task_spec.displacement.replace(chunk=self.displacement_chunk, delta=self.displacement_delta)
+
+    def occlusion_schedule(self) -> Occlusion | None:
+        if self.occlusion_chunk is None:
+            return None
+        return Occlusion(self.occlusion_chunk, self.occlusion_chunks, self.occlusion_mode)
+
+
+@register("env", "metaworld", config=MetaWorldEnvConfig)
+class MetaWorldEnv(EnvBase):
+    """A MetaWorld v3 task with DP3 point clouds and the paper's OOD disturbances."""
+
+    def __init__(self, config: MetaWorldEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
+        cfg = MetaWorldEnvConfig() if config is None else config
+        metaworld, mujoco = _import_sim()
+        super().__init__(device=device, batch_size=torch.Size([]))
+        self.config = cfg
+        self._mj = mujoco
+        self.task: MetaWorldTask | None = cfg.task_spec
+        self._displacement_plan = cfg.displacement_schedule()
+        self._occlusion_plan = cfg.occlusion_schedule()
+
+        self._train_tasks = _train_tasks(cfg.task, cfg.seed_tasks)
+        self.sim = metaworld.env_dict.ALL_V3_ENVIRONMENTS[env_name(cfg.task)]()
+        self.sim.set_task(self._train_tasks[cfg.task_indices[0]])
+        self.sim.max_path_length = max(self.sim.max_path_length, cfg.max_episode_steps)
+        self._widen_goal_space()
+        model = self.sim.model
+
+        cameras = [model.camera(i).name for i in range(model.ncam)]
+        if cfg.camera not in cameras:
+            raise ValueError(f"camera must be one of {cameras}; got {cfg.camera!r}{suggest(cfg.camera, cameras)}")
+        self._cam = model.camera(cfg.camera).id
+        if cfg.camera_pos is not None:
+            model.cam_pos[self._cam] = cfg.camera_pos
+        bodies = self.task.bodies if self.task is not None else ()
+        self._body_ids = np.array([model.body(b).id for b in bodies], dtype=np.int64)
+        self._hand = model.body("hand").id
+        self._fingers = (model.site("rightEndEffector").id, model.site("leftEndEffector").id)
+        self._mocap = int(model.body_mocapid[model.body("mocap").id])
+        # model state that disturbances edit; restored at every reset
+        self._body_pos0 = model.body_pos.copy()
+        self._site_pos0 = model.site_pos.copy()
+
+        self._renderer = None
+        self._cloud_fn = None
+        if cfg.render_point_cloud:
+            self._cloud_fn = DepthToCloud(
+                cfg.image_size,
+                cfg.image_size,
+                float(model.cam_fovy[self._cam]),
+                cfg.crop_min,
+                cfg.crop_max,
+                cfg.num_points,
+            )
+
+        self._next_seed = 0 if seed is None else int(seed)
+        self._steps = 0
+        self._task_index = cfg.task_indices[0]
+        self._rng = np.random.default_rng(0)
+        self._state = np.zeros(39)
+        self._cloud = np.zeros((cfg.num_points, 3), dtype=np.float32)
+        self._displacement = np.zeros((len(bodies), 3))
+        self._ee_offset = np.zeros(3)
+        self._tracked = np.zeros(3)
+        self._occluded = False
+        self._make_specs(len(bodies))
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self, num_bodies: int) -> None:
+        cfg, dev = self.config, self.device
+        vec = lambda *shape: Unbounded(shape=shape, dtype=torch.float32, device=dev)  # noqa: E731
+        flag = lambda: Categorical(2, shape=(1,), dtype=torch.bool, device=dev)  # noqa: E731
+        privileged = {
+            "state": vec(39),
+            "goal": vec(3),
+            "ee_offset": vec(3),
+            "task_index": Unbounded(shape=(1,), dtype=torch.int64, device=dev),
+            "occluded": flag(),
+        }
+        if num_bodies:
+            privileged["object_pos"] = vec(num_bodies, 3)
+            privileged["displacement"] = vec(num_bodies, 3)
+        obs = {"agent_pos": vec(9), "success": flag(), "privileged": Composite(privileged, device=dev)}
+        if cfg.render_point_cloud:
+            obs["point_cloud"] = vec(cfg.num_points, 3)
+        self.observation_spec = Composite(obs, device=dev)
+        self.action_spec = Bounded(-1.0, 1.0, shape=(4,), dtype=torch.float32, device=dev)
+        self.reward_spec = vec(1)
+        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), device=dev)
+
+    # -------------------------------------------------------------- TorchRL API
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is not None:
+            self._next_seed = int(seed)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, seed: int | None = None, **kwargs) -> TensorDictBase:
+        cfg = self.config
+        seed = self._next_seed if seed is None else int(seed)
+        self._next_seed = seed + 1
+        start, stop = cfg.task_indices
+        self._task_index = start + seed % (stop - start)
+        self.sim.set_task(self._train_tasks[self._task_index])
+        self._widen_goal_space()
+        model = self.sim.model
+        model.body_pos[:] = self._body_pos0  # undo last episode's displacements
+        model.site_pos[:] = self._site_pos0
+        state, _ = self.sim.reset()
+        self._state = state
+        self._rng = np.random.default_rng(abs(seed))
+        self._steps = 0
+        self._displacement[:] = 0.0
+        self._ee_offset[:] = 0.0
+        self._tracked[:] = 0.0
+        self._occluded = False
+        if cfg.render_point_cloud:
+            self._cloud = self._render_cloud()
+        return self._output(reward=None, success=False, terminated=False, truncated=False)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        cfg = self.config
+        action = tensordict.get("action").detach().to("cpu", torch.float64).numpy().reshape(4)
+        t = self._steps
+        plan = self._displacement_plan
+        if plan is not None:
+            if t == plan.step(cfg.chunk_len):
+                self._apply_displacement(plan)
+            if cfg.oracle_tracking and t == plan.snap_back_step(cfg.chunk_len):
+                self._snap_back()
+        state, reward, _, _, info = self.sim.step(np.clip(action, -1.0, 1.0))
+        self._state = state
+        self._steps = t + 1
+        if cfg.render_point_cloud:
+            occ = self._occlusion_plan
+            self._occluded = occ is not None and occ.covers(self._steps, cfg.chunk_len)
+            if self._occluded:
+                self._cloud = occ.corrupt(cfg.num_points, cfg.crop_min, cfg.crop_max, self._rng)
+            elif self._render_due(self._steps):
+                self._cloud = self._render_cloud()
+        success = bool(info["success"])
+        return self._output(
+            reward=float(reward),
+            success=success,
+            terminated=success and cfg.terminate_on_success,
+            truncated=self._steps >= cfg.max_episode_steps,
+        )
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        """Free the depth renderer (its EGL context) and the simulator."""
+        renderer = self.__dict__.get("_renderer")
+        if renderer is not None:
+            renderer.close()
+            self._renderer = None
+        sim = self.__dict__.get("sim")
+        if sim is not None:
+            sim.close()
+        super().close(raise_if_closed=raise_if_closed)
+
+    # ------------------------------------------------------- oracle interface
+    @property
+    def steps_done(self) -> int:
+        """Actions executed since the last reset."""
+        return self._steps
+
+    @property
+    def task_index(self) -> int:
+        """Index of the current MT1 train task (initial state)."""
+        return self._task_index
+
+    def shift_end_effector(self, delta, *, safe_lift: float = 0.0, settle_steps: int | None = None) -> np.ndarray:
+        """Oracle tracking: move the end-effector target (mocap) by ``delta``.
+
+        Paper, Appendix "Oracle State Transitions": the offset is added to
+        ``data.mocap_pos`` while "the environment execution is temporarily
+        paused". The hand follows the mocap through its weld, so the pause
+        simulates ``settle_steps`` MetaWorld steps (default
+        ``config.settle_steps``; about 10 bring a 25 cm jump within ~1 cm)
+        with the gripper command unchanged; they do not count as env steps.
+        ``settle_steps=0`` only writes the mocap (the hand then catches up
+        during the next actions). The target is clipped to MetaWorld's mocap
+        bounds, as the next action would do. With ``safe_lift > 0`` (the
+        pick-place "Safe Lift") the move has three settled phases: up by
+        ``safe_lift``, across by ``delta``, down again.
+
+        Returns the shift actually applied (after clipping); it is added to
+        ``("privileged", "ee_offset")``.
+        """
+        delta = np.asarray(delta, dtype=np.float64).reshape(3)
+        data = self.sim.data
+        low, high = self.sim.mocap_low, self.sim.mocap_high
+        start = data.mocap_pos[self._mocap].copy()
+        target = np.clip(start + delta, low, high)
+        n = self.config.settle_steps if settle_steps is None else settle_steps
+        if n < 0:
+            raise ValueError(f"settle_steps must be >= 0; got {n}")
+        waypoints = [target]
+        if safe_lift > 0.0:
+            lift = np.array([0.0, 0.0, safe_lift])
+            waypoints = [start + lift, target + lift, target]
+        for waypoint in waypoints:
+            self._settle(np.clip(waypoint, low, high), n)
+        self._mj.mj_forward(self.sim.model, data)
+        applied = target - start
+        self._ee_offset += applied
+        return applied
+
+    def displace_objects(self, delta) -> None:
+        """Move the task's displaceable bodies by ``delta`` now (and the goal where attached).
+
+        Free-joint bodies move through their joint's ``qpos`` (velocity set to
+        zero); other bodies through ``model.body_pos`` (undone at reset). The
+        success target ``_target_pos`` moves by ``delta * task.goal_mask``.
+        """
+        if self.task is None:
+            raise ValueError(f"task {self.config.task!r} has no displaceable bodies (not one of the paper's tasks)")
+        delta = np.asarray(delta, dtype=np.float64).reshape(3)
+        model, data = self.sim.model, self.sim.data
+        free = self._mj.mjtJoint.mjJNT_FREE
+        for bid in self._body_ids:
+            jnt = model.body_jntadr[bid]
+            if model.body_jntnum[bid] > 0 and model.jnt_type[jnt] == free:
+                qadr, vadr = model.jnt_qposadr[jnt], model.jnt_dofadr[jnt]
+                data.qpos[qadr : qadr + 3] += delta
+                data.qvel[vadr : vadr + 6] = 0.0
+            else:
+                parent_rot = data.xmat[model.body_parentid[bid]].reshape(3, 3)
+                model.body_pos[bid] += parent_rot.T @ delta
+        self._displacement += delta
+        self.sim._target_pos = np.asarray(self.sim._target_pos, dtype=np.float64) + delta * np.asarray(
+            self.task.goal_mask
+        )
+        self._mj.mj_forward(model, data)
+
+    # ---------------------------------------------------------------- helpers
+    def _apply_displacement(self, plan: Displacement) -> None:
+        delta = np.asarray(plan.delta, dtype=np.float64)
+        self.displace_objects(delta)
+        if self.config.oracle_tracking:
+            self._tracked = self.shift_end_effector(delta, safe_lift=plan.safe_lift)
+
+    def _snap_back(self) -> None:
+        """Two-stage Stage 2: the end-effector (with the grasped object) returns by -delta."""
+        self.shift_end_effector(-self._tracked)
+        self._tracked = np.zeros(3)
+        for k, body in enumerate(self.task.bodies):
+            if body in self.task.carried:
+                self._displacement[k] = 0.0
+
+    def _settle(self, mocap_pos: np.ndarray, steps: int) -> None:
+        data = self.sim.data
+        data.mocap_pos[self._mocap] = mocap_pos
+        data.mocap_quat[self._mocap] = np.array([1.0, 0.0, 1.0, 0.0])
+        if steps > 0:
+            self._mj.mj_step(self.sim.model, data, nstep=steps * self.sim.frame_skip)
+
+    def _widen_goal_space(self) -> None:
+        """Let a displaced goal leave MetaWorld's ID goal box unclipped in the state."""
+        from gymnasium.spaces import Box
+
+        if not np.all(np.isinf(self.sim.goal_space.high)):
+            self.sim.goal_space = Box(-np.inf, np.inf, shape=(3,), dtype=np.float64)
+            self.sim.__dict__.pop("sawyer_observation_space", None)  # a cached_property
+
+    def _render_due(self, t: int) -> bool:
+        every, hist = self.config.obs_every, self.config.obs_history
+        return t % every == 0 or t % every > every - hist
+
+    def _render_cloud(self) -> np.ndarray:
+        mj, model, data = self._mj, self.sim.model, self.sim.data
+        if self._renderer is None:
+            size = self.config.image_size
+            model.vis.quality.shadowsize = 0  # depth only: no shadows or multisampling
+            model.vis.quality.offsamples = 0
+            model.vis.global_.offwidth = max(model.vis.global_.offwidth, size)
+            model.vis.global_.offheight = max(model.vis.global_.offheight, size)
+            self._renderer = mj.Renderer(model, size, size)
+            _track_renderer(self._renderer)
+            self._renderer.enable_depth_rendering()
+            self._scene_option = mj.MjvOption()
+            self._scene_option.sitegroup[:] = 0  # hide the goal marker and other sites
+        self._renderer.update_scene(data, camera=self._cam, scene_option=self._scene_option)
+        depth = self._renderer.render()
+        return self._cloud_fn(depth, data.cam_xpos[self._cam], data.cam_xmat[self._cam])
+
+    def _output(self, *, reward: float | None, success: bool, terminated: bool, truncated: bool) -> TensorDictBase:
+        data, dev = self.sim.data, self.device
+        f32 = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float32), device=dev)  # noqa: E731
+        flag = lambda b: torch.tensor([b], dtype=torch.bool, device=dev)  # noqa: E731
+        privileged = {
+            "state": f32(self._state),
+            "goal": f32(self.sim._target_pos),
+            "ee_offset": f32(self._ee_offset),
+            "task_index": torch.tensor([self._task_index], dtype=torch.int64, device=dev),
+            "occluded": flag(self._occluded),
+        }
+        if len(self._body_ids):
+            privileged["object_pos"] = f32(data.xpos[self._body_ids])
+            privileged["displacement"] = f32(self._displacement)
+        right, left = self._fingers
+        agent_pos = np.concatenate([data.xpos[self._hand], data.site_xpos[right], data.site_xpos[left]])
+        out = {
+            "agent_pos": f32(agent_pos),
+            "success": flag(success),
+            "privileged": privileged,
+            "done": flag(terminated or truncated),
+            "terminated": flag(terminated),
+            "truncated": flag(truncated),
+        }
+        if self.config.render_point_cloud:
+            out["point_cloud"] = torch.as_tensor(self._cloud.copy(), device=dev)
+        if reward is not None:
+            out["reward"] = torch.tensor([reward], dtype=torch.float32, device=dev)
+        return TensorDict(out, batch_size=torch.Size([]), device=dev)

@@ -1,0 +1,216 @@
+"""Evaluation protocols (the paper's Table 1 conditions) run through TorchRL collectors.
+
+Each protocol is an environment condition plus a controller setting:
+
+==================  ==========================  ==============================================
+protocol            environment                 controller
+==================  ==========================  ==============================================
+id                  in distribution             base policy (detector ``never``)
+ood_base            displacement                base policy, no tracking
+ood_tracking        displacement                oracle detector + tracking/recovery, real latents
+                                                (the paper's "DP3 (Ablation)")
+ood_ddp             displacement                the recipe's controller: detect, track, imagine
+imagination_10/50/  in distribution             real latents replaced by imagined ones with
+100                                             probability 0.1 / 0.5 / 1 after the first chunk
+occlusion           camera blind for some       the recipe's detector; imagination through it
+                    chunks
+==================  ==========================  ==============================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from ddp.envs.chunked import ChunkedEnv, chunk_render_config
+from ddp.errors import RecipeError
+
+
+@dataclass(frozen=True)
+class Protocol:
+    env: dict = field(default_factory=dict)  # env config overrides
+    detector: dict | None = None  # None: the recipe's detector
+    imagine: bool | None = None  # None: the recipe's
+    tracker: bool = True
+    occlusion: bool = False
+
+
+PROTOCOLS: dict[str, Protocol] = {
+    "id": Protocol(detector={"name": "never"}, tracker=False),
+    "ood_base": Protocol(env={"displacement": True}, detector={"name": "never"}, tracker=False),
+    "ood_tracking": Protocol(env={"displacement": True}, detector={"name": "oracle"}, imagine=False),
+    "ood_ddp": Protocol(env={"displacement": True}),
+    "imagination_10": Protocol(detector={"name": "substitution", "p": 0.1}, tracker=False),
+    "imagination_50": Protocol(detector={"name": "substitution", "p": 0.5}, tracker=False),
+    "imagination_100": Protocol(detector={"name": "substitution", "p": 1.0}, tracker=False),
+    "occlusion": Protocol(occlusion=True, tracker=False),
+}
+
+
+def _env_overrides(exp, protocol: Protocol, max_steps: int | None) -> dict:
+    fields = {f.name for f in dataclasses.fields(exp.parts["env"].config)}
+    over = dict(protocol.env)
+    if protocol.occlusion:
+        over.update(occlusion_chunk=exp.recipe.eval.occlusion_chunk, occlusion_chunks=exp.recipe.eval.occlusion_chunks)
+    if max_steps is not None:
+        over["max_episode_steps"] = max_steps
+    missing = sorted(set(over) - fields)
+    if missing:
+        raise RecipeError(
+            f"env '{exp.parts['env'].plugin.name}' does not support {', '.join(missing)} needed by this protocol",
+            source=exp.source, key="env",
+        )
+    return over
+
+
+def make_chunked_env(exp, seed: int, overrides: dict | None = None) -> ChunkedEnv:
+    pol = exp.recipe.policy
+    part = exp.parts["env"]
+    cfg = dataclasses.replace(part.config, **(overrides or {}))
+    cfg = chunk_render_config(cfg, pol.action_steps, pol.obs_steps)
+    base = part.plugin.factory(cfg, seed=seed)
+    return ChunkedEnv(base, pol.action_steps, pol.obs_steps, safe_lift=exp.recipe.controller.safe_lift)
+
+
+def _chunks_per_episode(exp, overrides: dict) -> int:
+    cfg = dataclasses.replace(exp.parts["env"].config, **overrides)
+    steps = getattr(cfg, "max_episode_steps", None)
+    if steps is None:
+        raise RecipeError("the env config has no max_episode_steps; set eval.max_steps", source=exp.source, key="eval")
+    return math.ceil(steps / exp.recipe.policy.action_steps)
+
+
+def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: dict, num_envs: int = 1,
+                     desc: str = "", progress: bool = True) -> list[dict]:
+    """Run ``episodes`` seeded episodes with a torchrl Collector; one dict of results per episode."""
+    from torchrl.collectors import Collector
+    from torchrl.envs import SerialEnv
+
+    chunks = _chunks_per_episode(exp, overrides)
+    num_envs = max(1, min(num_envs, episodes))
+    per_env = math.ceil(episodes / num_envs)
+    if num_envs == 1:
+        env = make_chunked_env(exp, seed, overrides)
+    else:
+        env = SerialEnv(num_envs, [lambda i=i: make_chunked_env(exp, seed + i * per_env, overrides) for i in range(num_envs)])
+    controller.reset()
+    collector = Collector(
+        env, controller, frames_per_batch=chunks * num_envs, total_frames=chunks * num_envs * per_env,
+        reset_when_done=True, trust_policy=True, auto_register_policy_transforms=False,
+    )
+    results: list[dict] = []
+    bar = tqdm(total=episodes, desc=desc, disable=not progress, unit="ep")
+    try:
+        for batch in collector:
+            batch = batch.reshape(num_envs, chunks) if batch.batch_dims == 1 else batch
+            for i in range(num_envs):
+                traj = batch[i]
+                if len(results) >= episodes:
+                    break
+                ep = i * per_env + len([r for r in results if r["env"] == i])
+                results.append(_summarise(traj, env_index=i, seed=seed + ep))
+                bar.update(1)
+                bar.set_postfix(success=f"{np.mean([r['success'] for r in results]):.2f}")
+            if len(results) >= episodes:
+                break
+    finally:
+        bar.close()
+        collector.shutdown()
+        env.close()
+    return sorted(results, key=lambda r: r["seed"])
+
+
+def _summarise(traj, env_index: int, seed: int) -> dict:
+    success = traj.get(("next", "success")).reshape(-1)
+    out = {
+        "seed": seed,
+        "env": env_index,
+        "success": bool(success.any()),
+        "chunks": int(traj.batch_size[0]),
+        "first_success_chunk": int(success.nonzero()[0]) if bool(success.any()) else None,
+    }
+    for key in ("mode", "imagined", "discrepancy"):
+        if ("ddp", key) in traj.keys(True):
+            out[key] = traj.get(("ddp", key)).reshape(-1).float().tolist()
+    return out
+
+
+def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True) -> float:
+    """Set a discrepancy detector's tau from D_R-I observed in ID rollouts of the base policy."""
+    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False)
+    res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides={}, num_envs=num_envs,
+                           desc="calibrate tau", progress=progress)
+    values = [v for r in res for v in r.get("discrepancy", []) if not math.isnan(v)]
+    return detector.calibrate(values)
+
+
+def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: str | Path | None = None,
+             progress: bool = True, num_envs: int | None = None, seed: int | None = None) -> dict:
+    """Run the named protocols; write results.json, table.md and plots under ``output_dir``."""
+    cfg = exp.recipe.eval
+    if exp.parts.get("env") is None:
+        raise RecipeError("evaluation needs an env section", source=exp.source, key="env")
+    protocols = list(protocols or cfg.protocols)
+    unknown = [p for p in protocols if p not in PROTOCOLS]
+    if unknown:
+        from ddp.errors import suggest
+
+        raise RecipeError(
+            f"unknown protocol '{unknown[0]}'{suggest(unknown[0], PROTOCOLS)} (known: {', '.join(PROTOCOLS)})",
+            source=exp.source, key="eval.protocols",
+        )
+    episodes = episodes or cfg.episodes
+    num_envs = num_envs or cfg.num_envs
+    seed = cfg.seed if seed is None else seed
+    out_dir = Path(output_dir or cfg.output_dir.format(name=exp.recipe.name))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = {"recipe": exp.recipe.name, "episodes": episodes, "seed": seed, "protocols": {}}
+    tau = None
+    for name in protocols:
+        proto = PROTOCOLS[name]
+        overrides = _env_overrides(exp, proto, cfg.max_steps)
+        ctrl = exp.make_controller(detector=proto.detector, imagine=proto.imagine, tracker=proto.tracker)
+        if hasattr(ctrl.detector, "calibrate") and ctrl.detector.tau is None:
+            if tau is None:
+                tau = calibrate_tau(exp, ctrl.detector, episodes=cfg.calibration_episodes, seed=seed + 100_000,
+                                    num_envs=num_envs, progress=progress)
+            ctrl.detector.tau = tau
+        t0 = time.perf_counter()
+        res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=overrides, num_envs=num_envs,
+                               desc=name, progress=progress)
+        rate = float(np.mean([r["success"] for r in res]))
+        report["protocols"][name] = {
+            "success_rate": rate,
+            "successes": int(sum(r["success"] for r in res)),
+            "episodes": len(res),
+            "seconds": time.perf_counter() - t0,
+            "tau": getattr(ctrl.detector, "tau", None),
+            "per_episode": res,
+        }
+    (out_dir / "results.json").write_text(json.dumps(report, indent=1))
+    (out_dir / "table.md").write_text(markdown_table({exp.recipe.name: report}))
+    from ddp.plots import plot_report
+
+    report["plots"] = [str(p) for p in plot_report(report, out_dir)]
+    return report
+
+
+def markdown_table(reports: dict[str, dict]) -> str:
+    """Success rates (%) laid out like the paper's Table 1: one row per method / condition."""
+    protocols = [p for p in PROTOCOLS if any(p in r["protocols"] for r in reports.values())]
+    lines = ["| method | " + " | ".join(protocols) + " |", "|---|" + "---|" * len(protocols)]
+    for name, rep in reports.items():
+        cells = []
+        for p in protocols:
+            r = rep["protocols"].get(p)
+            cells.append("-" if r is None else f"{100 * r['success_rate']:.0f} ({r['successes']}/{r['episodes']})")
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,199 @@
+"""The DDP controller: closed-loop inference with imagination (paper Algorithm 2).
+
+One call = one control cycle for a batch of environments (``ChunkedEnv``
+observations: ``point_cloud`` [B, M, P, 3], ``agent_pos`` [B, M, D],
+``chunk_index`` [B, 1], ``privileged`` for oracle parts). Per environment it
+keeps the ID/OOD mode, the last imagined latents, the displaced objects and
+the current subtask; a new episode (``chunk_index == 0``) resets them.
+
+It writes ``action`` [B, N, A] (the chunk to execute), ``ee_shift`` [B, 3]
+(tracking / recovery shift the environment executes before the chunk) and
+diagnostics under ``"ddp"``: ``mode`` (0 ID, 1 OOD), ``imagined`` (the
+policy acted from imagined latents), ``discrepancy`` (D_R-I, NaN before the
+first prediction), ``subtask``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from tensordict import TensorDictBase
+
+from ddp.keys import KeyedModule
+
+MIN_OFFSET = 1e-6  # metres: smaller tracked offsets mean "did not move"
+
+
+@dataclass
+class Subtask:
+    target: int | None  # index of the target object C_j in the privileged object order
+    trigger: object | None  # completion trigger T_end(S_j); None = ends with the episode
+
+
+@dataclass
+class EnvState:
+    """What Algorithm 2 keeps per environment between cycles."""
+
+    ood: bool = False  # OOD_Mode
+    recheck_after: int | None = None  # re-evaluate D_R-I on the first observation after this chunk
+    predicted: torch.Tensor | None = None  # W_phi's forecast of the next N latents
+    offsets: torch.Tensor | None = None  # Delta p_C per object, from the tracker
+    displaced: torch.Tensor | None = None  # C_disp as a mask over objects
+    recovered: torch.Tensor | None = None  # objects already brought back
+    subtask: int = 0
+    subtask_start: int = 0
+    done_subtasks: list = field(default_factory=list)
+
+
+class DDPController(KeyedModule):
+    """Detect (D_R-I) -> track -> imagine -> recover, around a trained DreamDiffusionPolicy."""
+
+    default_in_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos", "chunk_index": "chunk_index"}
+    default_out_keys = {
+        "action": "action",
+        "ee_shift": "ee_shift",
+        "mode": ("ddp", "mode"),
+        "imagined": ("ddp", "imagined"),
+        "discrepancy": ("ddp", "discrepancy"),
+        "subtask": ("ddp", "subtask"),
+    }
+
+    def __init__(
+        self,
+        model,
+        *,
+        detector,
+        tracker=None,
+        recovery=None,
+        subtasks: list[Subtask] | None = None,
+        imagine: bool = True,
+        track: bool = True,
+        seed: int = 0,
+    ):
+        super().__init__()
+        if getattr(detector, "needs_discrepancy", False) and not model.has_world_model:
+            raise ValueError("the discrepancy detector needs a world model (world_model.enabled is false)")
+        if imagine and not model.has_world_model:
+            imagine = False  # the DP3 ablation: tracking without imagination
+        self.model = model
+        self.detector = detector
+        self.tracker = tracker
+        self.recovery = recovery
+        self.subtasks = subtasks or [Subtask(target=0, trigger=None)]
+        self.imagine = imagine
+        self.track = track
+        self.seed = seed
+        self.reset()
+
+    def reset(self) -> None:
+        self.states: list[EnvState] = []
+        self.generator = torch.Generator().manual_seed(self.seed)
+        for part in (self.detector, self.tracker, self.recovery):
+            if part is not None and hasattr(part, "reset"):
+                part.reset()
+
+    # ------------------------------------------------------------------ helpers
+    def _trigger(self, s: EnvState):
+        if self.recovery is not None and getattr(self.recovery, "trigger_chunk", None) is not None:
+            return ("chunk", self.recovery.trigger_chunk)
+        return self.subtasks[s.subtask].trigger if s.subtask < len(self.subtasks) else None
+
+    def _subtask_ended(self, s: EnvState, obs, chunk: int) -> bool:
+        trig = self._trigger(s)
+        if trig is None:
+            return False
+        if isinstance(trig, tuple):
+            return chunk >= trig[1] and s.subtask not in s.done_subtasks
+        return trig.fired(obs, chunk, chunk - s.subtask_start)
+
+    def _discrepancy(self, real: torch.Tensor, s: EnvState) -> float:
+        """D_R-I = ||O_real - O_pred||^2, averaged over the M latest frames and the latent dims."""
+        if s.predicted is None:
+            return float("nan")
+        m = real.shape[0]
+        return float(((real - s.predicted[-m:]) ** 2).mean())
+
+    # ------------------------------------------------------------------ one cycle
+    @torch.no_grad()
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        unbatched = td.batch_dims == 0
+        if unbatched:
+            td = td.unsqueeze(0)
+        B, M = td.batch_size[0], self.model.obs_steps
+        chunk_index = td.get(self.key("chunk_index")).reshape(B).tolist()
+        if len(self.states) != B:
+            self.states = [EnvState() for _ in range(B)]
+        for b in range(B):
+            if chunk_index[b] == 0:
+                self.states[b] = EnvState()
+
+        # O_real^t = E_psi(X_real^t)
+        real = self.model.encode(td.get(self.key("point_cloud")), td.get(self.key("agent_pos")))
+        ee_shift = torch.zeros(B, 3)
+        discrepancy = torch.tensor([self._discrepancy(real[b], self.states[b]) for b in range(B)])
+        td.set(self.key("discrepancy"), discrepancy)
+
+        # 3. Target-specific recovery at the end of a subtask (checked on the latest observation)
+        for b, s in enumerate(self.states):
+            if not self._subtask_ended(s, td[b], chunk_index[b]):
+                continue
+            target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
+            if s.ood and s.displaced is not None and self.recovery is not None:
+                shift, recovered = self.recovery.recover(s.offsets, s.displaced & ~s.recovered, target)
+                ee_shift[b] += shift  # a^rec_j = -Delta p_Cj
+                s.recovered |= recovered
+                if bool(recovered.any()):
+                    s.recheck_after = chunk_index[b]  # re-evaluate D_R-I once the shift is observed
+            s.done_subtasks.append(s.subtask)
+            s.subtask, s.subtask_start = s.subtask + 1, chunk_index[b]
+
+        # 1. OOD detection & tracking
+        if "privileged" in td.keys() and ("privileged", "displacement") in td.keys(True):
+            num_objects = td.get(("privileged", "displacement")).shape[-2]
+        else:
+            num_objects = 0
+        for s in self.states:
+            if s.recovered is None:
+                s.recovered = torch.zeros(num_objects, dtype=torch.bool)
+        td.set(("ddp", "recovered"), torch.stack([s.recovered for s in self.states]))
+        ood_now = self.detector(td).get(("ddp", "ood")).reshape(B).tolist()
+        offsets = self.tracker(td).get(("ddp", "offsets")) if self.tracker is not None else None
+        for b, s in enumerate(self.states):
+            if not self.detector.sticky:
+                s.ood = bool(ood_now[b]) and s.predicted is not None
+            elif not s.ood and ood_now[b]:
+                s.ood = True  # OOD_Mode <- True
+                if offsets is not None:
+                    s.offsets = offsets[b]
+                    s.displaced = (offsets[b].norm(dim=-1) > MIN_OFFSET) & ~s.recovered
+                    target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
+                    if self.track and target is not None and bool(s.displaced[target]):
+                        ee_shift[b] += offsets[b][target]  # a^track_j = Delta p_Cj
+            elif s.ood and s.recheck_after is not None and chunk_index[b] > s.recheck_after:
+                s.recheck_after = None
+                if not ood_now[b]:
+                    s.ood = False  # D_R-I <= tau: return to reality
+
+        # O_curr: real latents in ID, imagined ones in OOD (Enter Imagination)
+        imagined = [self.imagine and s.ood and s.predicted is not None for s in self.states]
+        current = torch.stack(
+            [self.states[b].predicted[-M:] if imagined[b] else real[b] for b in range(B)]
+        )
+
+        # 2. Action execution & recursive imagination
+        chunk = self.model.sample_actions(current, generator=self.generator)
+        actions = self.model.executed_actions(chunk)
+        if self.model.has_world_model:
+            # O_pred for the next cycle: W_phi(O_curr, a_t) -- in ID it is the forecast D_R-I compares
+            # against; in OOD it is the autoregressive imagination the policy will act from.
+            predicted = self.model.imagine(current, actions, generator=self.generator)
+            for b, s in enumerate(self.states):
+                s.predicted = predicted[b]
+
+        td.set(self.key("action"), actions)
+        td.set(self.key("ee_shift"), ee_shift)
+        td.set(self.key("mode"), torch.tensor([int(s.ood) for s in self.states]))
+        td.set(self.key("imagined"), torch.tensor(imagined))
+        td.set(self.key("subtask"), torch.tensor([s.subtask for s in self.states]))
+        return td.squeeze(0) if unbatched else td

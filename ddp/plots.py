@@ -1,0 +1,71 @@
+"""Figures for evaluation reports: success bars and D_R-I traces (like the paper's discrepancy figure)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_success(report: dict, path: Path) -> Path:
+    plt = _pyplot()
+    names = list(report["protocols"])
+    rates = [100 * report["protocols"][n]["success_rate"] for n in names]
+    fig, ax = plt.subplots(figsize=(1.2 + 1.1 * len(names), 3.2))
+    bars = ax.bar(names, rates, color="#4c72b0")
+    for bar, r in zip(bars, rates):
+        ax.text(bar.get_x() + bar.get_width() / 2, r + 1, f"{r:.0f}", ha="center", va="bottom", fontsize=8)
+    ax.set_ylim(0, 110)
+    ax.set_ylabel("success rate (%)")
+    ax.set_title(f"{report['recipe']}: {report['episodes']} episodes per protocol")
+    ax.tick_params(axis="x", labelrotation=30)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_discrepancy(episode: dict, tau: float | None, title: str, path: Path) -> Path:
+    """D_R-I per control cycle, the threshold tau, and OOD periods shaded."""
+    plt = _pyplot()
+    d = episode["discrepancy"]
+    mode = episode.get("mode", [0] * len(d))
+    xs = list(range(len(d)))
+    fig, ax = plt.subplots(figsize=(6, 2.6))
+    ax.plot(xs, [float("nan") if math.isnan(v) else v for v in d], marker="o", ms=3, lw=1.2, label="$D_{R-I}$")
+    if tau is not None:
+        ax.axhline(tau, color="crimson", ls="--", lw=1, label=r"$\tau_{diff}$")
+    for x, m in zip(xs, mode):
+        if m:
+            ax.axvspan(x - 0.5, x + 0.5, color="orange", alpha=0.25, lw=0)
+    ax.set_xlabel("control cycle (action chunk)")
+    ax.set_ylabel("latent discrepancy")
+    ax.set_title(title + " (shaded: OOD mode)")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def plot_report(report: dict, out_dir: Path) -> list[Path]:
+    """Write success.png and one discrepancy_<protocol>.png per protocol that recorded D_R-I."""
+    try:
+        _pyplot()
+    except ImportError:
+        return []
+    paths = [plot_success(report, out_dir / "success.png")]
+    for name, res in report["protocols"].items():
+        eps = [e for e in res["per_episode"] if any(not math.isnan(v) for v in e.get("discrepancy", []))]
+        if eps and name in ("ood_ddp", "occlusion", "ood_tracking"):
+            paths.append(plot_discrepancy(eps[0], res.get("tau"), f"{report['recipe']} / {name}, seed {eps[0]['seed']}",
+                                          out_dir / f"discrepancy_{name}.png"))
+    return paths

@@ -1,0 +1,38 @@
+"""Target-specific recovery: the inverse shift a^rec_j = -Delta p_Cj after subtask S_j."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from ddp.registry import register
+
+
+@dataclass
+class TargetSpecificConfig:
+    also_recovers: list[int] = field(default_factory=list)  # objects moved back with the target (held by it)
+
+
+@register("recovery", "target_specific", config=TargetSpecificConfig)
+class TargetSpecificRecovery:
+    """At the end of a subtask whose target was displaced: shift the end-effector by -Delta p and
+    remove the target (and the objects it carries) from the displaced set (paper, Target-Specific Recovery)."""
+
+    trigger_chunk: int | None = None  # use the subtask's own trigger
+
+    def __init__(self, config: TargetSpecificConfig):
+        self.config = config
+
+    def recover(self, offsets: torch.Tensor, displaced: torch.Tensor, target: int):
+        """offsets [K, 3], displaced [K] bool -> (end-effector shift [3], recovered [K] bool)."""
+        recovered = torch.zeros_like(displaced)
+        if target is None or not bool(displaced[target]):
+            return torch.zeros(3, dtype=offsets.dtype), recovered
+        recovered[target] = True
+        for k in self.config.also_recovers:
+            recovered[k] = True
+        return -offsets[target], recovered
+
+    def reset(self):
+        pass

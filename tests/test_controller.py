@@ -1,0 +1,130 @@
+"""The DDP controller (Algorithm 2) on the synthetic env: modes, tracking, imagination, recovery."""
+
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from ddp import build
+from ddp.envs.chunked import ChunkedEnv
+from ddp.envs.synthetic_reach import SyntheticReachEnv, SyntheticReachEnvConfig
+from ddp.evaluate import make_chunked_env
+
+DELTA = [0.2, 0.0, 0.0]
+
+
+@pytest.fixture
+def exp(tiny_recipe):
+    tiny_recipe["env"].update(displacement=True, displacement_chunk=1, displacement_delta=DELTA, max_episode_steps=64)
+    tiny_recipe["controller"] = {
+        "detector": {"name": "oracle"},
+        "tracker": {"name": "oracle"},
+        "recovery": {"name": "target_specific"},
+        "subtasks": [{"target": 0, "trigger": {"name": "chunk_index", "chunk": 4}}, {"target": None}],
+    }
+    e = build(tiny_recipe)
+    eps = e.episodes()
+    e.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
+    return e
+
+
+def rollout(exp, ctrl, chunks=8, **env_over):
+    env = make_chunked_env(exp, seed=0, overrides=env_over)
+    ctrl.reset()
+    return env.rollout(chunks, ctrl, break_when_any_done=False)
+
+
+def test_chunked_env_specs_and_stacking():
+    base = SyntheticReachEnv(SyntheticReachEnvConfig(num_points=32), seed=3)
+    env = ChunkedEnv(base, action_steps=8, obs_steps=2)
+    check_env_specs(env)
+    td = env.reset()
+    assert td["point_cloud"].shape == (2, 32, 3) and td["chunk_index"].item() == 0
+    td["action"] = torch.zeros(8, 4)
+    td["action"][:, 2] = 1.0  # up 2 cm per step
+    td["ee_shift"] = torch.tensor([0.05, 0.0, 0.0])
+    nxt = env.step(td)["next"]
+    assert nxt["chunk_index"].item() == 1 and base._steps == 8
+    z = nxt["agent_pos"][:, 2]
+    assert torch.allclose(z[1] - z[0], torch.tensor(0.02), atol=1e-5)  # the last two frames, one step apart
+    assert torch.allclose(nxt["privileged", "ee_offset"], torch.tensor([0.05, 0.0, 0.0]))
+
+
+def test_never_detector_acts_from_reality(exp):
+    r = rollout(exp, exp.make_controller(detector={"name": "never"}, tracker=False))
+    assert (r["ddp", "mode"] == 0).all() and not r["ddp", "imagined"].any()
+    assert (r["ee_shift"] == 0).all()
+    assert torch.isnan(r["ddp", "discrepancy"][0]) and not torch.isnan(r["ddp", "discrepancy"][1:]).any()
+
+
+def test_open_loop_imagination_after_the_first_chunk(exp):
+    r = rollout(exp, exp.make_controller(detector={"name": "substitution", "p": 1.0}, tracker=False))
+    assert r["ddp", "imagined"].tolist() == [False] + [True] * 7
+
+
+def test_oracle_track_imagine_recover_and_return_to_reality(exp):
+    r = rollout(exp, exp.make_controller())
+    mode, imagined, shift = r["ddp", "mode"].tolist(), r["ddp", "imagined"].tolist(), r["ee_shift"]
+    # displaced at the start of chunk 1 -> seen at cycle 2: OOD, tracking shift = +delta, imagination
+    assert mode[:2] == [0, 0] and mode[2] == 1 and imagined[2]
+    assert torch.allclose(shift[2], torch.tensor(DELTA))
+    # subtask 0 ends at chunk 4 -> recovery shift -delta; re-check at cycle 5 -> back to reality
+    assert torch.allclose(shift[4], -torch.tensor(DELTA))
+    assert mode[3:5] == [1, 1] and mode[5:] == [0, 0, 0] and not any(imagined[5:])
+    assert r["ddp", "subtask"].tolist()[4] == 1
+    offsets = r["next", "privileged", "ee_offset"]
+    assert torch.allclose(offsets[2], torch.tensor(DELTA)) and torch.allclose(offsets[4], torch.zeros(3), atol=1e-6)
+
+
+def test_tracking_ablation_does_not_imagine(exp):
+    r = rollout(exp, exp.make_controller(imagine=False))
+    assert r["ddp", "mode"][2] == 1 and not r["ddp", "imagined"].any()
+    assert torch.allclose(r["ee_shift"][2], torch.tensor(DELTA))
+
+
+def test_discrepancy_detector_threshold_and_calibration(exp):
+    ctrl = exp.make_controller(detector={"name": "discrepancy", "tau": 1e9})
+    r = rollout(exp, ctrl)
+    assert (r["ddp", "mode"] == 0).all()
+    ctrl = exp.make_controller(detector={"name": "discrepancy", "tau": 1e-12})
+    r = rollout(exp, ctrl)
+    assert r["ddp", "mode"][1] == 1  # any discrepancy exceeds a tiny tau
+    tau = ctrl.detector.calibrate([0.1, 0.2, 0.3, 10.0])
+    assert tau == pytest.approx(1.5 * torch.tensor([0.1, 0.2, 0.3, 10.0]).quantile(0.99).item(), rel=1e-6)
+    with pytest.raises(RuntimeError, match="no threshold"):
+        rollout(exp, exp.make_controller(detector={"name": "discrepancy"}), chunks=3)
+
+
+def test_discrepancy_needs_a_world_model(tiny_recipe):
+    tiny_recipe["world_model"]["enabled"] = False
+    e = build(tiny_recipe)
+    with pytest.raises(ValueError, match="needs a world model"):
+        e.make_controller(detector={"name": "discrepancy", "tau": 1.0})
+
+
+def test_state_is_per_environment(exp):
+    """Two envs in one batch: each keeps its own mode; a new episode resets only its own state."""
+    ctrl = exp.make_controller()
+    envs = [make_chunked_env(exp, seed=0), make_chunked_env(exp, seed=0, overrides={"displacement": False})]
+    keys = ["point_cloud", "agent_pos", "chunk_index", "privileged"]
+    obs = [e.reset().select(*keys) for e in envs]
+    modes = []
+    for cycle in range(4):
+        if cycle == 3:
+            obs[1] = envs[1].reset().select(*keys)  # env 1 starts a new episode
+        out = ctrl(torch.stack(obs))
+        modes.append(out["ddp", "mode"].tolist())
+        obs = [envs[i].step(out[i].select("action", "ee_shift"))["next"].select(*keys) for i in range(2)]
+    assert modes == [[0, 0], [0, 0], [1, 0], [1, 0]]
+    assert out["ddp", "imagined"].tolist() == [True, False]
+
+
+def test_evaluate_writes_results_table_and_plots(exp, tmp_path):
+    rep = exp.evaluate(["id", "ood_ddp", "imagination_100"], episodes=2, output_dir=tmp_path, progress=False)
+    assert set(rep["protocols"]) == {"id", "ood_ddp", "imagination_100"}
+    for res in rep["protocols"].values():
+        assert res["episodes"] == 2 and len(res["per_episode"]) == 2
+        assert [e["seed"] for e in res["per_episode"]] == [1000, 1001]
+    assert (tmp_path / "results.json").exists() and (tmp_path / "table.md").read_text().startswith("| method |")
+    assert (tmp_path / "success.png").exists() and (tmp_path / "discrepancy_ood_ddp.png").exists()
+    mode = rep["protocols"]["ood_ddp"]["per_episode"][0]["mode"]
+    assert mode[2] == 1.0

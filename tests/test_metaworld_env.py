@@ -1,0 +1,296 @@
+"""The MetaWorld env: specs, point clouds, the paper's displacement / oracle protocol, occlusion, seeding.
+
+Simulator tests skip when metaworld is not installed; config validation runs without it.
+"""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from ddp.config import from_dict, to_dict
+from ddp.envs.metaworld import MetaWorldEnvConfig
+from ddp.envs.metaworld_tasks import PAPER_TASKS, id_frame_state
+from ddp.errors import RecipeError
+
+SMALL = dict(image_size=32, num_points=64)  # cheap clouds where geometry does not matter
+
+
+@pytest.fixture
+def make_env():
+    pytest.importorskip("metaworld")
+    from ddp.envs.metaworld import MetaWorldEnv
+
+    envs = []
+
+    def make(**options):
+        env = MetaWorldEnv(MetaWorldEnvConfig(**options))
+        envs.append(env)
+        return env
+
+    yield make
+    for env in envs:
+        env.close()
+
+
+def _step(env, td, action):
+    td["action"] = torch.as_tensor(action, dtype=torch.float32)
+    return env.step(td)["next"]
+
+
+def _run_expert(env, seed, id_frame):
+    """Scripted expert through the TorchRL env; True at the first success."""
+    from metaworld.policies import ENV_POLICY_MAP
+
+    spec = env.task
+    policy = ENV_POLICY_MAP[spec.env_name]()
+    td = env.reset(seed=seed)
+    for _ in range(env.config.max_episode_steps):
+        p = td["privileged"]
+        state = p["state"].double().numpy()
+        if id_frame:
+            state = id_frame_state(spec, state, p["displacement"].numpy(), p["ee_offset"].numpy())
+        td = _step(env, td, np.clip(policy.get_action(state), -1, 1))
+        if td["success"].item():
+            return True
+        if td["done"].item():
+            return False
+    return False
+
+
+# --------------------------------------------------------------------- config
+
+
+def test_config_validation_names_field_and_value():
+    with pytest.raises(ValueError, match=r"task must be one of .*got 'buton-press'; did you mean 'button-press'\?"):
+        MetaWorldEnvConfig(task="buton-press")
+    assert MetaWorldEnvConfig(task="push-v3").task == "push"
+    with pytest.raises(ValueError, match="oracle_tracking=True needs displacement=True"):
+        MetaWorldEnvConfig(task="push", oracle_tracking=True)
+    with pytest.raises(ValueError, match="paper's tasks .*got task 'reach'"):
+        MetaWorldEnvConfig(task="reach", displacement=True)
+    with pytest.raises(ValueError, match=r"obs_history \(3\) must be <= obs_every \(2\)"):
+        MetaWorldEnvConfig(obs_every=2, obs_history=3)
+    with pytest.raises(ValueError, match="task_indices"):
+        MetaWorldEnvConfig(task_indices=(10, 60))
+    with pytest.raises(ValueError, match="crop_min must be below crop_max"):
+        MetaWorldEnvConfig(crop_min=(0, 0, 1), crop_max=(1, 1, 0))
+    with pytest.raises(ValueError, match="occlusion_mode"):
+        MetaWorldEnvConfig(occlusion_chunk=1, occlusion_mode="blur")
+
+
+def test_config_round_trips_through_a_recipe_dict():
+    cfg = MetaWorldEnvConfig(task="coffee-pull", displacement=True, displacement_delta=(-0.1, 0.0, 0.0),
+                             oracle_tracking=True, occlusion_chunk=3)
+    again = from_dict(MetaWorldEnvConfig, to_dict(cfg))
+    assert again == cfg
+    plan = again.displacement_schedule()
+    assert plan.delta == (-0.1, 0.0, 0.0) and plan.chunk == 2 and plan.snap_back_chunk == 8
+    with pytest.raises(RecipeError, match="env.chunk_len.*did you mean|unknown option"):
+        from_dict(MetaWorldEnvConfig, {"chunk_length": 8}, key="env")
+
+
+def test_envs_import_without_the_simulator():
+    code = (
+        "import sys; sys.modules['metaworld'] = None; sys.modules['mujoco'] = None\n"
+        "import ddp.envs\n"
+        "from ddp.envs.metaworld import MetaWorldEnv\n"
+        "try:\n    MetaWorldEnv()\nexcept ImportError as err:\n    print(err)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert 'pip install "ddp[sim]"' in out.stdout
+
+
+# ---------------------------------------------------------------------- specs
+
+
+@pytest.mark.parametrize("task", list(PAPER_TASKS))
+def test_check_env_specs_with_every_disturbance(make_env, task):
+    from torchrl.envs.utils import check_env_specs
+
+    # chunk_len=1: displacement at step 2 and occlusion from step 2 happen inside the spec rollout
+    env = make_env(task=task, chunk_len=1, displacement=True, oracle_tracking=True,
+                   occlusion_chunk=1, occlusion_mode="noise", **SMALL)
+    check_env_specs(env, seed=0)
+    assert env.observation_spec["privileged", "object_pos"].shape == (len(PAPER_TASKS[task].bodies), 3)
+
+
+def test_any_metaworld_task_and_the_registry(make_env):
+    from torchrl.envs.utils import check_env_specs
+
+    from ddp import registry
+
+    plugin = registry.get("env", "metaworld")
+    env = plugin.factory(plugin.config_cls(task="reach", **SMALL), seed=3, device="cpu")
+    try:
+        check_env_specs(env)
+        assert "object_pos" not in env.observation_spec["privileged"].keys()
+        fast = make_env(task="reach", render_point_cloud=False)
+        assert "point_cloud" not in fast.reset().keys()
+    finally:
+        env.close()
+
+
+# --------------------------------------------------------------- point cloud
+
+
+def test_point_cloud_has_the_table_and_the_object(make_env):
+    env = make_env(task="button-press")  # defaults: 84 px, 512 points, DP3 camera and crop
+    td = env.reset(seed=0)
+    pc = td["point_cloud"].numpy()
+    cfg = env.config
+    assert pc.shape == (512, 3) and pc.dtype == np.float32
+    assert np.all(pc >= np.array(cfg.crop_min) - 1e-6) and np.all(pc <= np.array(cfg.crop_max) + 1e-6)
+    assert (np.abs(pc[:, 2]) < 0.01).mean() > 0.3, "the table plane (z ~ 0) fills much of the cloud"
+    box = td["privileged", "object_pos"][0].numpy()  # button box: centre at z = 0.115
+    near = np.all(np.abs(pc - box) < [0.12, 0.12, 0.12], axis=1) & (pc[:, 2] > 0.02)
+    assert near.sum() > 20, "points on the button box"
+    assert len(np.unique(pc, axis=0)) == 512
+
+    above = make_env(task="button-press", crop_min=(-0.6, 0.3, 0.005)).reset(seed=0)["point_cloud"].numpy()
+    assert above[:, 2].min() >= 0.005, "raising the crop floor drops the table"
+
+
+# -------------------------------------------------------------- displacement
+
+
+def _box_points(pc, centre):
+    sel = np.all(np.abs(pc[:, :2] - centre[:2]) < 0.12, axis=1) & (pc[:, 2] > 0.03)
+    return pc[sel]
+
+
+def test_displacement_moves_object_goal_and_cloud(make_env):
+    opts = dict(task="button-press", chunk_len=2)  # displacement chunk 3 -> before step 6
+    plain, moved = make_env(**opts), make_env(displacement=True, **opts)
+    a, b = plain.reset(seed=1), moved.reset(seed=1)
+    box0 = a["privileged", "object_pos"][0].numpy()
+    for t in range(8):
+        a, b = _step(plain, a, np.zeros(4)), _step(moved, b, np.zeros(4))
+        if t == 5:  # the 6th step is the first one after the move
+            assert b["privileged", "displacement"].abs().sum() == 0
+    delta = np.array([-0.25, 0.0, 0.0])
+    np.testing.assert_allclose(b["privileged", "object_pos"][0].numpy() - box0, delta, atol=1e-5)
+    np.testing.assert_allclose(b["privileged", "displacement"][0].numpy(), delta, atol=1e-6)
+    np.testing.assert_allclose((b["privileged", "goal"] - a["privileged", "goal"]).numpy(), delta, atol=1e-5)
+    # the goal is not clipped in MetaWorld's state observation
+    np.testing.assert_allclose(b["privileged", "state"][36:39].numpy(), b["privileged", "goal"].numpy(), atol=1e-6)
+    # the button (state object 1) moved with its box
+    button_shift = (b["privileged", "state"][4:7] - a["privileged", "state"][4:7]).numpy()
+    np.testing.assert_allclose(button_shift, delta, atol=2e-3)
+
+    before, after = _box_points(a["point_cloud"].numpy(), box0), _box_points(b["point_cloud"].numpy(), box0 + delta)
+    assert len(before) > 20 and len(after) > 20
+    np.testing.assert_allclose(after.mean(0) - before.mean(0), delta, atol=0.03)
+    assert len(_box_points(b["point_cloud"].numpy(), box0)) < len(before) / 3, "the old place is empty"
+    assert a["privileged", "ee_offset"].abs().sum() == 0 and b["privileged", "ee_offset"].abs().sum() == 0
+
+
+@pytest.mark.filterwarnings("ignore:Constant")  # metaworld's policies warn about their own gains
+def test_scripted_expert_needs_oracle_tracking_under_displacement(make_env):
+    """An expert that keeps acting in the ID frame succeeds with oracle tracking and fails without."""
+    opts = dict(task="button-press", render_point_cloud=False, terminate_on_success=True, displacement=True)
+    tracked, untracked = make_env(oracle_tracking=True, **opts), make_env(**opts)
+    assert _run_expert(tracked, seed=0, id_frame=True)
+    assert not _run_expert(untracked, seed=0, id_frame=True)
+    assert _run_expert(untracked, seed=0, id_frame=False), "the state expert re-targets the moved button"
+
+
+def test_oracle_tracking_and_two_stage_snap_back(make_env):
+    for task in ("coffee-pull", "pick-place"):
+        spec = PAPER_TASKS[task]
+        plan = spec.displacement
+        env = make_env(task=task, chunk_len=1, displacement=True, oracle_tracking=True, render_point_cloud=False)
+        td = env.reset(seed=2)
+        obj0 = td["privileged", "object_pos"].numpy()
+        hand0 = td["agent_pos"][:3].numpy()
+        delta = np.array(plan.delta)
+        for t in range(plan.snap_back_chunk + 1):
+            td = _step(env, td, np.zeros(4))
+            if t == plan.chunk:  # tracked: every body and the hand moved by delta
+                np.testing.assert_allclose(td["privileged", "ee_offset"].numpy(), delta, atol=1e-6)
+                moved = td["privileged", "object_pos"].numpy() - obj0
+                np.testing.assert_allclose(moved, np.broadcast_to(delta, obj0.shape), atol=0.01)
+                np.testing.assert_allclose(td["agent_pos"][:3].numpy() - hand0, delta, atol=0.03)
+        # snapped back: hand home, carried object's displacement cleared, the rest stays displaced
+        np.testing.assert_allclose(td["privileged", "ee_offset"].numpy(), 0.0, atol=1e-6)
+        np.testing.assert_allclose(td["agent_pos"][:3].numpy(), hand0, atol=0.03)
+        disp = td["privileged", "displacement"].numpy()
+        for k, body in enumerate(spec.bodies):
+            expected = np.zeros(3) if body in spec.carried else delta
+            np.testing.assert_allclose(disp[k], expected, atol=1e-6)
+
+
+def test_model_edits_are_undone_on_reset(make_env):
+    fresh = make_env(task="coffee-pull", **SMALL)
+    env = make_env(task="coffee-pull", chunk_len=1, displacement=True, oracle_tracking=True, **SMALL)
+    ref = fresh.reset(seed=4)
+    td = env.reset(seed=4)
+    for _ in range(5):
+        td = _step(env, td, np.zeros(4))
+    assert np.abs(td["privileged", "object_pos"] - ref["privileged", "object_pos"]).max() > 0.1
+    td = env.reset(seed=4)
+    for key in [("privileged", "object_pos"), ("privileged", "goal"), ("privileged", "state"), "point_cloud"]:
+        torch.testing.assert_close(td[key], ref[key], atol=1e-6, rtol=0, msg=f"{key} after reset")
+    assert td["privileged", "displacement"].abs().sum() == 0 and td["privileged", "ee_offset"].abs().sum() == 0
+
+
+# ---------------------------------------------------------------- determinism
+
+
+def test_same_seed_same_episode(make_env):
+    env_a, env_b = make_env(task="pick-place", **SMALL), make_env(task="pick-place", **SMALL)
+    first, again = env_a.reset(seed=7), env_a.reset(seed=7)
+    assert first["privileged", "task_index"].item() == 7
+    assert (first == again).all()
+    other = env_a.reset(seed=8)
+    assert not torch.equal(other["privileged", "state"], first["privileged", "state"])
+
+    actions = np.random.default_rng(0).uniform(-1, 1, (15, 4))
+    tds = [env_a.reset(seed=7), env_b.reset(seed=7)]
+    for action in actions:
+        tds = [_step(env, td, action) for env, td in zip((env_a, env_b), tds)]
+        assert (tds[0] == tds[1]).all()
+    assert not torch.equal(tds[0]["point_cloud"], first["point_cloud"]), "the arm moved"
+
+    env_a.set_seed(49)
+    assert env_a.reset()["privileged", "task_index"].item() == 49
+    assert env_a.reset()["privileged", "task_index"].item() == 0, "unseeded resets continue with seed + 1"
+
+
+# ------------------------------------------------------ occlusion, rendering
+
+
+@pytest.mark.parametrize("mode", ["zeros", "drop", "noise"])
+def test_occlusion_blinds_exactly_the_configured_chunks(make_env, mode):
+    env = make_env(task="push", chunk_len=2, occlusion_chunk=2, occlusion_chunks=2, occlusion_mode=mode, **SMALL)
+    td = env.reset(seed=0)
+    low, high = np.array(env.config.crop_min), np.array(env.config.crop_max)
+    blind = []
+    for t in range(1, 11):
+        td = _step(env, td, [0.0, 0.5, -0.5, 0.0])
+        pc = td["point_cloud"].numpy()
+        degenerate = {
+            "zeros": np.all(pc == 0),
+            "drop": len(np.unique(pc, axis=0)) == 1 and np.all((pc >= low) & (pc <= high)),
+            "noise": np.all((pc >= low) & (pc <= high)) and (np.abs(pc[:, 2]) < 0.01).mean() < 0.1,
+        }[mode]
+        if degenerate:
+            blind.append(t)
+        assert td["privileged", "occluded"].item() == degenerate
+    assert blind == [5, 6, 7, 8], "chunks 2 and 3 (steps 4..8) are blind from the first step after the start"
+
+
+def test_obs_every_renders_only_consumed_steps(make_env):
+    env = make_env(task="push", obs_every=4, obs_history=2, **SMALL)
+    td = env.reset(seed=0)
+    prev = td["point_cloud"].clone()
+    rendered = []
+    for t in range(1, 13):
+        td = _step(env, td, [0.0, 1.0, -1.0, 0.0])
+        if not torch.equal(td["point_cloud"], prev):
+            rendered.append(t)
+        prev = td["point_cloud"].clone()
+    assert rendered == [3, 4, 7, 8, 11, 12]
