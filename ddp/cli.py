@@ -118,6 +118,38 @@ def cmd_run(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    import torch
+
+    from ddp.bench import bench
+    from ddp.experiment import build
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    exp = build(args.recipe, args.overrides)
+    steps = exp.recipe.policy.scheduler.get("num_inference_steps")
+    print(f"{exp.recipe.name}: batch 1, {steps} denoising steps, device {args.device}, {torch.get_num_threads()} threads")
+    for k, v in bench(exp, repeats=args.repeats, device=args.device).items():
+        unit = "" if k.endswith("per_s") else " ms"
+        print(f"  {k:<24} {v:10.1f}{unit}")
+    return 0
+
+
+def cmd_demos(args) -> int:
+    from ddp.data.demos import prepare_demos
+
+    info = prepare_demos(args.recipe, args.overrides, episodes=args.episodes, regenerate=args.regenerate,
+                         progress=not args.quiet)
+    stats = info.get("stats") or {}
+    what = "generated" if info.get("generated") else "ready (cached)"
+    print(f"{info['episodes']} demonstrations {what}" + (f" in {info['path']}" if info.get("path") else ""))
+    keys = ("attempts", "successes", "success_rate", "mean_length", "seconds", "seconds_per_episode")
+    shown = [f"{k} {stats[k]:.3g}" if isinstance(stats[k], float) else f"{k} {stats[k]}" for k in keys if k in stats]
+    if shown:
+        print("  " + ", ".join(shown))
+    return 0
+
+
 def make_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ddp", description="Dream Diffusion Policy: diffusion policies with a world model to dream with."
@@ -143,6 +175,20 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-resume", action="store_true", help="start from scratch even if a checkpoint exists")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("bench", help="control-cycle latency and training throughput", description="Median latency at batch 1 of the encoder, policy sampling, world-model imagination, detector and the full control cycle; training samples/s.")
+    _add_recipe_args(p)
+    p.add_argument("--repeats", type=int, default=20, help="timed runs per stage (after warm-up)")
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("demos", help="generate scripted-expert demonstrations", description="Roll out the recipe's scripted expert, keep successful episodes and store them (memory-mapped) where the recipe's data section says.")
+    _add_recipe_args(p)
+    p.add_argument("--episodes", type=int, help="successful episodes to keep (default: data.episodes)")
+    p.add_argument("--regenerate", action="store_true", help="ignore a matching cache and generate anew")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_demos)
 
     p = sub.add_parser("eval", help="evaluate a checkpoint", description="Run evaluation protocols (id, ood_base, ood_tracking, ood_ddp, imagination_10/50/100, occlusion) and write results.json, table.md and plots.")
     _add_recipe_args(p)

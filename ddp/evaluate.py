@@ -37,17 +37,20 @@ from ddp.errors import RecipeError
 @dataclass(frozen=True)
 class Protocol:
     env: dict = field(default_factory=dict)  # env config overrides
+    env_if_supported: dict = field(default_factory=dict)  # overrides applied only where the env has the field
     detector: dict | None = None  # None: the recipe's detector
     imagine: bool | None = None  # None: the recipe's
     tracker: bool = True
     occlusion: bool = False
+    env_tracking: bool = False  # honour eval.env_oracle_tracking
 
 
 PROTOCOLS: dict[str, Protocol] = {
     "id": Protocol(detector={"name": "never"}, tracker=False),
-    "ood_base": Protocol(env={"displacement": True}, detector={"name": "never"}, tracker=False),
-    "ood_tracking": Protocol(env={"displacement": True}, detector={"name": "oracle"}, imagine=False),
-    "ood_ddp": Protocol(env={"displacement": True}),
+    "ood_base": Protocol(env={"displacement": True}, env_if_supported={"oracle_tracking": False},
+                         detector={"name": "never"}, tracker=False),
+    "ood_tracking": Protocol(env={"displacement": True}, detector={"name": "oracle"}, imagine=False, env_tracking=True),
+    "ood_ddp": Protocol(env={"displacement": True}, env_tracking=True),
     "imagination_10": Protocol(detector={"name": "substitution", "p": 0.1}, tracker=False),
     "imagination_50": Protocol(detector={"name": "substitution", "p": 0.5}, tracker=False),
     "imagination_100": Protocol(detector={"name": "substitution", "p": 1.0}, tracker=False),
@@ -57,7 +60,11 @@ PROTOCOLS: dict[str, Protocol] = {
 
 def _env_overrides(exp, protocol: Protocol, max_steps: int | None) -> dict:
     fields = {f.name for f in dataclasses.fields(exp.parts["env"].config)}
-    over = dict(protocol.env)
+    over = dict(exp.recipe.eval.env)
+    over.update(protocol.env)
+    over.update({k: v for k, v in protocol.env_if_supported.items() if k in fields})
+    if protocol.env_tracking and exp.recipe.eval.env_oracle_tracking:
+        over["oracle_tracking"] = True
     if protocol.occlusion:
         over.update(occlusion_chunk=exp.recipe.eval.occlusion_chunk, occlusion_chunks=exp.recipe.eval.occlusion_chunks)
     if max_steps is not None:
@@ -146,7 +153,7 @@ def _summarise(traj, env_index: int, seed: int) -> dict:
 def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True) -> float:
     """Set a discrepancy detector's tau from D_R-I observed in ID rollouts of the base policy."""
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False)
-    res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides={}, num_envs=num_envs,
+    res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=dict(exp.recipe.eval.env), num_envs=num_envs,
                            desc="calibrate tau", progress=progress)
     values = [v for r in res for v in r.get("discrepancy", []) if not math.isnan(v)]
     return detector.calibrate(values)

@@ -134,6 +134,16 @@ class DDPController(KeyedModule):
         discrepancy = torch.tensor([self._discrepancy(real[b], self.states[b]) for b in range(B)])
         td.set(self.key("discrepancy"), discrepancy)
 
+        if ("privileged", "displacement") in td.keys(True):
+            num_objects = td.get(("privileged", "displacement")).shape[-2]
+        else:
+            num_objects = 0
+        for s in self.states:
+            if s.recovered is None:
+                s.recovered = torch.zeros(num_objects, dtype=torch.bool)
+        # objects recovered before this cycle (a recovery below is only observable from the next one)
+        td.set(("ddp", "recovered"), torch.stack([s.recovered.clone() for s in self.states]))
+
         # 3. Target-specific recovery at the end of a subtask (checked on the latest observation)
         for b, s in enumerate(self.states):
             if not self._subtask_ended(s, td[b], chunk_index[b]):
@@ -149,20 +159,10 @@ class DDPController(KeyedModule):
             s.subtask, s.subtask_start = s.subtask + 1, chunk_index[b]
 
         # 1. OOD detection & tracking
-        if "privileged" in td.keys() and ("privileged", "displacement") in td.keys(True):
-            num_objects = td.get(("privileged", "displacement")).shape[-2]
-        else:
-            num_objects = 0
-        for s in self.states:
-            if s.recovered is None:
-                s.recovered = torch.zeros(num_objects, dtype=torch.bool)
-        td.set(("ddp", "recovered"), torch.stack([s.recovered for s in self.states]))
         ood_now = self.detector(td).get(("ddp", "ood")).reshape(B).tolist()
         offsets = self.tracker(td).get(("ddp", "offsets")) if self.tracker is not None else None
         for b, s in enumerate(self.states):
-            if not self.detector.sticky:
-                s.ood = bool(ood_now[b]) and s.predicted is not None
-            elif not s.ood and ood_now[b]:
+            if not s.ood and ood_now[b] and (self.detector.sticky or s.predicted is not None):
                 s.ood = True  # OOD_Mode <- True
                 if offsets is not None:
                     s.offsets = offsets[b]
@@ -170,6 +170,8 @@ class DDPController(KeyedModule):
                     target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
                     if self.track and target is not None and bool(s.displaced[target]):
                         ee_shift[b] += offsets[b][target]  # a^track_j = Delta p_Cj
+            elif s.ood and not self.detector.sticky:
+                s.ood = bool(ood_now[b])  # re-decided every cycle (substitution, simulator oracle)
             elif s.ood and s.recheck_after is not None and chunk_index[b] > s.recheck_after:
                 s.recheck_after = None
                 if not ood_now[b]:

@@ -150,6 +150,8 @@ class EvalConfig:
     occlusion_chunks: int = 2
     video: bool = False
     output_dir: str = "runs/{name}/eval"
+    env: dict = field(default_factory=dict)  # env config overrides for evaluation (e.g. held-out initial states)
+    env_oracle_tracking: bool = False  # OOD protocols with tracking: the env's oracle tracks and snaps back
 
     def __post_init__(self):
         if self.episodes < 1:

@@ -28,7 +28,7 @@ class OracleDetector(KeyedModule):
         "recovered": ("ddp", "recovered"),
     }
     default_out_keys = {"ood": ("ddp", "ood")}
-    sticky = True
+    sticky = False  # ground truth: re-read every cycle, so in-env oracle snap-backs end OOD mode too
     needs_discrepancy = False
 
     def __init__(self, config: OracleDetectorConfig):

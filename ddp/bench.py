@@ -1,0 +1,80 @@
+"""Latency of the DDP control cycle and training throughput (``ddp bench``).
+
+Medians of many runs after warm-up, at batch 1, CUDA-synchronised on a GPU.
+Numbers, not assertions: compare them across runs in the same process.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import torch
+
+
+def _timed(fn, *, repeats: int, warmup: int, device: torch.device) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        t = time.perf_counter()
+        fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t)
+    return 1000 * statistics.median(times)
+
+
+def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train_steps: int = 5) -> dict[str, float]:
+    """Milliseconds per call of each stage, and training samples per second."""
+    from tensordict import TensorDict
+
+    dev = torch.device(device)
+    model = exp.model.to(dev).eval()
+    r = exp.recipe
+    M, N, P, D = r.policy.obs_steps, r.policy.action_steps, r.task.num_points, r.task.agent_pos_dim
+    pc = torch.rand(1, M, P, r.task.point_dim, device=dev)
+    pos = torch.rand(1, M, D, device=dev)
+    g = torch.Generator(device=dev).manual_seed(0)
+    out: dict[str, float] = {}
+    with torch.inference_mode():
+        latent = model.encode(pc, pos)
+        out["encoder_ms"] = _timed(lambda: model.encode(pc, pos), repeats=repeats, warmup=warmup, device=dev)
+        out["policy_sample_ms"] = _timed(lambda: model.sample_actions(latent, generator=g), repeats=repeats,
+                                         warmup=warmup, device=dev)
+        actions = model.executed_actions(model.sample_actions(latent, generator=g))
+        if model.has_world_model:
+            out["world_model_imagine_ms"] = _timed(lambda: model.imagine(latent, actions, generator=g),
+                                                   repeats=repeats, warmup=warmup, device=dev)
+    detector = {"name": "discrepancy", "tau": 1.0} if model.has_world_model else {"name": "never"}
+    ctrl = exp.make_controller(detector=detector, tracker=False)
+    td = TensorDict({"point_cloud": pc, "agent_pos": pos, "chunk_index": torch.ones(1, 1, dtype=torch.long, device=dev)},
+                    batch_size=[1], device=dev)
+    ctrl(td.clone())  # a first cycle so that D_R-I has a forecast to compare with
+    det_td = TensorDict({("ddp", "discrepancy"): torch.rand(1)}, batch_size=[1])
+    out["detector_ms"] = _timed(lambda: ctrl.detector(det_td), repeats=repeats, warmup=warmup, device=dev)
+    out["control_cycle_ms"] = _timed(lambda: ctrl(td.clone()), repeats=repeats, warmup=warmup, device=dev)
+    # training throughput on random windows of the recipe's shapes
+    model.train()
+    B = r.train.batch_size
+    T = max(r.policy.horizon, M + N)
+    batch = TensorDict({
+        "point_cloud": torch.rand(B, T, P, r.task.point_dim, device=dev),
+        "agent_pos": torch.rand(B, T, D, device=dev),
+        "action": torch.rand(B, T, r.task.action_dim, device=dev) * 2 - 1,
+    }, batch_size=[B], device=dev)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+
+    def step():
+        loss = model.loss(batch)["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    ms = _timed(step, repeats=train_steps, warmup=1, device=dev)
+    out["train_step_ms"] = ms
+    out["train_samples_per_s"] = 1000.0 * B / ms
+    model.eval()
+    return out

@@ -1,0 +1,133 @@
+"""The dp3_zarr data source: DP3-format zarr import/export round trip, down-sampling, errors.
+
+No DP3 data can be downloaded here, so the project's own generated episodes
+are exported in DP3's layout and imported back.
+"""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from ddp.data.episodes import Episodes
+from ddp.errors import DDPError, RecipeError
+from ddp.schema import validate
+
+zarr = pytest.importorskip("zarr")
+
+from ddp.data.sources.dp3_zarr import export_dp3_zarr, read_dp3_zarr  # noqa: E402
+
+
+def _source(data: dict, **recipe):
+    rec, parts, _ = validate({"name": "z", "data": data, **recipe}, "<test>")
+    return parts["data"].build(task=rec.task, seed=rec.seed, env=parts.get("env"))
+
+
+@pytest.fixture(scope="module")
+def demos():
+    """Generated demos (synthetic_reach) with a 6-channel cloud (xyz + a fake colour) and an extra key."""
+    eps = _source({"name": "synthetic_reach", "episodes": 3}, task={"num_points": 48}).load()
+    steps = eps.steps
+    rgb = torch.rand(*steps["point_cloud"].shape, generator=torch.Generator().manual_seed(0))
+    steps = TensorDict(
+        {
+            "point_cloud": torch.cat([steps["point_cloud"], rgb], -1),
+            "agent_pos": steps["agent_pos"],
+            "action": steps["action"],
+            "full_state": torch.randn(steps.batch_size[0], 39, generator=torch.Generator().manual_seed(1)),
+        },
+        batch_size=steps.batch_size,
+    )
+    return Episodes(steps, eps.episode_ends)
+
+
+@pytest.fixture(scope="module")
+def dp3_dir(demos, tmp_path_factory):
+    return export_dp3_zarr(demos, tmp_path_factory.mktemp("dp3") / "metaworld_synthetic_expert.zarr", chunk_steps=16)
+
+
+def test_export_writes_dp3_layout(dp3_dir, demos):
+    assert json.loads((dp3_dir / ".zgroup").read_text())["zarr_format"] == 2
+    meta = json.loads((dp3_dir / "data" / "point_cloud" / ".zarray").read_text())
+    assert meta["shape"] == list(demos.steps["point_cloud"].shape) and meta["compressor"]["id"] == "blosc"
+    root = zarr.open(str(dp3_dir), mode="r")
+    assert np.array_equal(root["meta/episode_ends"][:], demos.episode_ends.numpy())
+    assert np.array_equal(root["data/state"][:], demos.steps["agent_pos"].numpy())
+    assert np.array_equal(root["data/full_state"][:], demos.steps["full_state"].numpy())
+    with pytest.raises(DDPError, match="exists"):
+        export_dp3_zarr(demos, dp3_dir)
+
+
+def test_round_trip_identical_arrays(dp3_dir, demos):
+    keys = {"point_cloud": "data/point_cloud", "agent_pos": "data/state", "action": "data/action",
+            "full_state": "data/full_state"}  # fmt: skip
+    back = read_dp3_zarr(dp3_dir, keys=keys, point_cloud_channels=6)
+    assert torch.equal(back.episode_ends, demos.episode_ends)
+    assert (back.steps == demos.steps).all()
+    for k in keys:
+        assert back.steps[k].dtype == torch.float32
+
+    # through the registry, as a recipe's data section: xyz only by default
+    loaded = _source({"name": "dp3_zarr", "path": str(dp3_dir)}).load()
+    assert set(loaded.steps.keys()) == {"point_cloud", "agent_pos", "action"}
+    assert torch.equal(loaded.steps["point_cloud"], demos.steps["point_cloud"][..., :3])
+    assert torch.equal(loaded.episode_ends, demos.episode_ends)
+    six = _source({"name": "dp3_zarr", "path": str(dp3_dir), "point_cloud_channels": 6},
+                  task={"point_dim": 6}).load()  # fmt: skip
+    assert torch.equal(six.steps["point_cloud"], demos.steps["point_cloud"])
+
+
+@pytest.mark.parametrize("method", ["fps", "random"])
+def test_subsampling_is_deterministic_and_keeps_stored_points(dp3_dir, demos, method):
+    data = {"name": "dp3_zarr", "path": str(dp3_dir), "num_points": 16, "subsample": method,
+            "point_cloud_channels": 6}  # fmt: skip
+    a = _source(data, task={"point_dim": 6}).load()
+    b = _source(data, task={"point_dim": 6}).load()
+    assert a.steps["point_cloud"].shape == (demos.num_steps, 16, 6)
+    assert torch.equal(a.steps["point_cloud"], b.steps["point_cloud"])
+    assert torch.equal(a.steps["action"], demos.steps["action"])
+    full = demos.steps["point_cloud"]
+    for t in (0, demos.num_steps // 2, demos.num_steps - 1):
+        # every kept point (with its colour) is one of the stored points of that frame, none twice
+        match = (a.steps["point_cloud"][t][:, None, :] == full[t][None, :, :]).all(-1)
+        assert (match.sum(1) >= 1).all()
+        assert torch.unique(match.float().argmax(1)).numel() == 16
+    if method == "fps":
+        # FPS starts at the first stored point and spreads out: its minimum pairwise distance beats a prefix's
+        assert torch.equal(a.steps["point_cloud"][:, 0], full[:, 0])
+        kept = a.steps["point_cloud"][0, :, :3]
+        prefix = full[0, :16, :3]
+        gap = lambda p: (torch.cdist(p, p) + 1e9 * torch.eye(16)).min()  # noqa: E731
+        assert gap(kept) > gap(prefix)
+    else:
+        assert not torch.equal(a.steps["point_cloud"][:, :16], full[:, :16])  # a subset, not the first points
+
+
+def test_errors_name_the_path_and_the_key(dp3_dir, tmp_path):
+    missing = tmp_path / "nope.zarr"
+    with pytest.raises(DDPError, match=f"{missing}: no such DP3 zarr directory"):
+        _source({"name": "dp3_zarr", "path": str(missing)}).load()
+    with pytest.raises(DDPError, match=rf"{dp3_dir}: no array 'data/pc'.*found: data/action"):
+        read_dp3_zarr(dp3_dir, keys={"point_cloud": "data/pc", "agent_pos": "data/state", "action": "data/action"})
+    with pytest.raises(DDPError, match="num_points is 4096 but data/point_cloud holds 48 points"):
+        read_dp3_zarr(dp3_dir, num_points=4096)
+    with pytest.raises(DDPError, match="point_cloud_channels is 9 but data/point_cloud has 6 channels"):
+        read_dp3_zarr(dp3_dir, point_cloud_channels=9)
+    with pytest.raises(DDPError, match="task.agent_pos_dim is 7 but the data have 9"):
+        _source({"name": "dp3_zarr", "path": str(dp3_dir)}, task={"agent_pos_dim": 7}).load()
+    with pytest.raises(RecipeError, match="keys must map point_cloud, agent_pos, action; missing action"):
+        _source({"name": "dp3_zarr", "path": "x", "keys": {"point_cloud": "a", "agent_pos": "b"}})
+    (tmp_path / "empty.zarr").mkdir()
+    with pytest.raises(DDPError, match="empty.zarr: not a readable zarr store"):
+        read_dp3_zarr(tmp_path / "empty.zarr")
+
+
+def test_inconsistent_lengths_are_reported(demos, tmp_path):
+    path = export_dp3_zarr(demos, tmp_path / "bad.zarr")
+    root = zarr.open(str(path), mode="r+")
+    ends = root["meta/episode_ends"]
+    ends[-1] = int(ends[-1]) - 1
+    with pytest.raises(DDPError, match=r"data/point_cloud has \d+ steps but meta/episode_ends ends at"):
+        read_dp3_zarr(path)
