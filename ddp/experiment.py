@@ -113,6 +113,7 @@ class Experiment:
             subtasks=subtasks,
             imagine=c.imagine if imagine is None else imagine,
             track=c.track if track is None else track,
+            forecast_every_cycle=c.forecast_every_cycle,
             seed=self.recipe.seed if seed is None else seed,
         )
 

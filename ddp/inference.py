@@ -38,6 +38,11 @@ class EnvState:
     ood: bool = False  # OOD_Mode
     recheck_after: int | None = None  # re-evaluate D_R-I on the first observation after this chunk
     predicted: torch.Tensor | None = None  # W_phi's forecast of the next N latents
+    pending: tuple | None = None  # (O_curr, a_t) of the last cycle, forecast lazily when needed
+
+    @property
+    def has_forecast(self) -> bool:
+        return self.predicted is not None or self.pending is not None
     offsets: torch.Tensor | None = None  # Delta p_C per object, from the tracker
     displaced: torch.Tensor | None = None  # C_disp as a mask over objects
     recovered: torch.Tensor | None = None  # objects already brought back
@@ -69,6 +74,7 @@ class DDPController(KeyedModule):
         subtasks: list[Subtask] | None = None,
         imagine: bool = True,
         track: bool = True,
+        forecast_every_cycle: bool = False,
         seed: int = 0,
     ):
         super().__init__()
@@ -83,6 +89,7 @@ class DDPController(KeyedModule):
         self.subtasks = subtasks or [Subtask(target=0, trigger=None)]
         self.imagine = imagine
         self.track = track
+        self.forecast_every_cycle = forecast_every_cycle
         self.seed = seed
         self.reset()
 
@@ -106,6 +113,21 @@ class DDPController(KeyedModule):
         if isinstance(trig, tuple):
             return chunk >= trig[1] and s.subtask not in s.done_subtasks
         return trig.fired(obs, chunk, chunk - s.subtask_start)
+
+    def _forecast(self, envs: list[int]) -> None:
+        """O_pred = W_phi(O_curr, a_t) for the listed environments, one batched world-model call.
+
+        Forecasts are made lazily: only when D_R-I is needed (discrepancy detector, diagnostics)
+        or when the policy is about to act from imagination.
+        """
+        todo = [b for b in envs if self.states[b].pending is not None]
+        if not todo or not self.model.has_world_model:
+            return
+        hist = torch.stack([self.states[b].pending[0] for b in todo])
+        acts = torch.stack([self.states[b].pending[1] for b in todo])
+        predicted = self.model.imagine(hist, acts, generator=self.generator)
+        for i, b in enumerate(todo):
+            self.states[b].predicted, self.states[b].pending = predicted[i], None
 
     def _discrepancy(self, real: torch.Tensor, s: EnvState) -> float:
         """D_R-I = ||O_real - O_pred||^2, averaged over the M latest frames and the latent dims."""
@@ -131,6 +153,8 @@ class DDPController(KeyedModule):
         # O_real^t = E_psi(X_real^t)
         real = self.model.encode(td.get(self.key("point_cloud")), td.get(self.key("agent_pos")))
         ee_shift = torch.zeros(B, 3)
+        if self.forecast_every_cycle or getattr(self.detector, "needs_discrepancy", False):
+            self._forecast(list(range(B)))
         discrepancy = torch.tensor([self._discrepancy(real[b], self.states[b]) for b in range(B)])
         td.set(self.key("discrepancy"), discrepancy)
 
@@ -162,7 +186,7 @@ class DDPController(KeyedModule):
         ood_now = self.detector(td).get(("ddp", "ood")).reshape(B).tolist()
         offsets = self.tracker(td).get(("ddp", "offsets")) if self.tracker is not None else None
         for b, s in enumerate(self.states):
-            if not s.ood and ood_now[b] and (self.detector.sticky or s.predicted is not None):
+            if not s.ood and ood_now[b] and (self.detector.sticky or s.has_forecast):
                 s.ood = True  # OOD_Mode <- True
                 if offsets is not None:
                     s.offsets = offsets[b]
@@ -178,7 +202,8 @@ class DDPController(KeyedModule):
                     s.ood = False  # D_R-I <= tau: return to reality
 
         # O_curr: real latents in ID, imagined ones in OOD (Enter Imagination)
-        imagined = [self.imagine and s.ood and s.predicted is not None for s in self.states]
+        imagined = [self.imagine and s.ood and s.has_forecast for s in self.states]
+        self._forecast([b for b in range(B) if imagined[b]])
         current = torch.stack(
             [self.states[b].predicted[-M:] if imagined[b] else real[b] for b in range(B)]
         )
@@ -187,11 +212,10 @@ class DDPController(KeyedModule):
         chunk = self.model.sample_actions(current, generator=self.generator)
         actions = self.model.executed_actions(chunk)
         if self.model.has_world_model:
-            # O_pred for the next cycle: W_phi(O_curr, a_t) -- in ID it is the forecast D_R-I compares
-            # against; in OOD it is the autoregressive imagination the policy will act from.
-            predicted = self.model.imagine(current, actions, generator=self.generator)
+            # O_pred for the next cycle is W_phi(O_curr, a_t): in ID the forecast D_R-I compares
+            # against, in OOD the autoregressive imagination the policy acts from (made lazily).
             for b, s in enumerate(self.states):
-                s.predicted = predicted[b]
+                s.pending, s.predicted = (current[b], actions[b]), None
 
         td.set(self.key("action"), actions)
         td.set(self.key("ee_shift"), ee_shift)

@@ -59,6 +59,9 @@ class WorldModelConfig:
 
     enabled: bool = True
     weight: float = 1.0  # lambda in L = L_BC + lambda * L_WM
+    # Algorithm 1 encodes the future targets with gradients (true); false encodes them without
+    # gradient (cheaper; the encoder then learns from L_WM only through the history latents)
+    target_gradient: bool = True
     denoiser: dict = field(default_factory=lambda: {"name": "unet1d_wm"})
     scheduler: dict = field(default_factory=lambda: {"name": "ddim", "clip_sample": False})
 
@@ -101,6 +104,9 @@ class TrainConfig:
     output_dir: str = "runs/{name}"
     device: str = "auto"
     num_threads: int | None = None
+    logger: Literal["csv", "tensorboard", "wandb", "none"] = "csv"  # torchrl.record.loggers backends
+    autocast_bf16: bool = False  # bf16 autocast of the forward passes (CUDA or CPU)
+    compile: bool = False  # torch.compile the loss computation
 
     def __post_init__(self):
         if self.batch_size < 1:
@@ -134,6 +140,7 @@ class ControllerConfig:
     imagine: bool = True  # act from imagined latents in OOD mode (false: the tracking-only DP3 ablation)
     track: bool = True  # execute the tracking shift a^track on an OOD event
     safe_lift: float = 0.0  # lift (m) before an end-effector shift, to avoid dragging through the table
+    forecast_every_cycle: bool = False  # always run the world model (D_R-I diagnostics with any detector)
 
 
 @dataclass

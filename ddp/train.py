@@ -105,6 +105,7 @@ class Trainer:
             noise.set_state(state["noise_rng"])
             step, epoch, batch_in_epoch = int(state["step"]), int(state["epoch"]), int(state["batch_in_epoch"])
         logger = self._logger()
+        loss_fn = torch.compile(model.loss) if cfg.compile else model.loss
         sums = {"loss": 0.0, "loss_bc": 0.0, "loss_wm": 0.0}
         count, last_means = 0, dict(sums)
         t0, samples = time.perf_counter(), 0
@@ -131,7 +132,8 @@ class Trainer:
                 while batch_in_epoch < per_epoch and step < total:
                     idx = order[batch_in_epoch * cfg.batch_size : (batch_in_epoch + 1) * cfg.batch_size]
                     batch = dataset.batch(idx).to(self.device)
-                    losses = model.loss(batch, generator=noise)
+                    with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                        losses = loss_fn(batch, generator=noise)
                     optimizer.zero_grad(set_to_none=True)
                     losses["loss"].backward()
                     if cfg.grad_clip_norm:
@@ -150,9 +152,10 @@ class Trainer:
                     if step % cfg.log_every_steps == 0 or step == total:
                         means = {k: v / count for k, v in sums.items()}
                         bar.set_postfix({k: f"{v:.4f}" for k, v in means.items()})
-                        for k, v in means.items():
-                            logger.log_scalar(k, v, step=step)
-                        logger.log_scalar("lr", lr_sched.get_last_lr()[0], step=step)
+                        if logger is not None:
+                            for k, v in means.items():
+                                logger.log_scalar(k, v, step=step)
+                            logger.log_scalar("lr", lr_sched.get_last_lr()[0], step=step)
                         last_means, sums, count = means, {k: 0.0 for k in sums}, 0
                 if batch_in_epoch >= per_epoch:
                     epoch, batch_in_epoch = epoch + 1, 0
@@ -172,6 +175,16 @@ class Trainer:
         )
 
     def _logger(self):
-        from torchrl.record.loggers import CSVLogger
+        """torchrl's logger for ``train.logger`` (csv, tensorboard, wandb) or None."""
+        kind = self.cfg.logger
+        if kind == "none":
+            return None
+        from torchrl.record.loggers import get_logger
 
-        return CSVLogger(exp_name="logs", log_dir=str(self.output_dir))
+        try:
+            return get_logger(kind, logger_name=str(self.output_dir), experiment_name="logs")
+        except ImportError as err:
+            from ddp.errors import RecipeError
+
+            raise RecipeError(f"logger '{kind}' needs a package that is not installed: {err}",
+                              source=self.exp.source, key="train.logger") from None

@@ -53,7 +53,11 @@ def test_never_detector_acts_from_reality(exp):
     r = rollout(exp, exp.make_controller(detector={"name": "never"}, tracker=False))
     assert (r["ddp", "mode"] == 0).all() and not r["ddp", "imagined"].any()
     assert (r["ee_shift"] == 0).all()
+    assert torch.isnan(r["ddp", "discrepancy"]).all()  # nothing needs a forecast: the world model never runs
+    exp.recipe.controller.forecast_every_cycle = True  # D_R-I diagnostics with any detector
+    r = rollout(exp, exp.make_controller(detector={"name": "never"}, tracker=False))
     assert torch.isnan(r["ddp", "discrepancy"][0]) and not torch.isnan(r["ddp", "discrepancy"][1:]).any()
+    assert (r["ddp", "mode"] == 0).all()
 
 
 def test_open_loop_imagination_after_the_first_chunk(exp):
@@ -119,6 +123,7 @@ def test_state_is_per_environment(exp):
 
 
 def test_evaluate_writes_results_table_and_plots(exp, tmp_path):
+    exp.recipe.controller.forecast_every_cycle = True  # D_R-I traces for the plot
     rep = exp.evaluate(["id", "ood_ddp", "imagination_100"], episodes=2, output_dir=tmp_path, progress=False)
     assert set(rep["protocols"]) == {"id", "ood_ddp", "imagination_100"}
     for res in rep["protocols"].values():

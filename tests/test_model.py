@@ -143,3 +143,16 @@ def test_ema_tracks_the_weights(exp):
     d = ema.update(m)
     assert 0 < d < 1
     assert torch.allclose(next(ema.module.parameters()), p0 + 1.0 + (1 - d))
+
+
+@pytest.mark.parametrize("target_gradient", [True, False])
+def test_world_model_target_gradient_option(tiny_recipe, target_gradient):
+    tiny_recipe["world_model"]["target_gradient"] = target_gradient
+    e = build(tiny_recipe)
+    batch = batch_of(e)
+    pc = batch["point_cloud"].clone().requires_grad_(True)
+    batch["point_cloud"] = pc
+    e.model.loss(batch, generator=torch.Generator().manual_seed(0))["loss_wm"].backward()
+    future_grad = pc.grad[:, 2:10].abs().sum()
+    assert (future_grad > 0) == target_gradient  # Algorithm 1: the future targets are encoded with gradients
+    assert pc.grad[:, :2].abs().sum() > 0

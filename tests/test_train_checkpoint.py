@@ -126,3 +126,19 @@ def test_weights_of_another_recipe_are_refused(tiny_recipe, tmp_path):
     other = build(tiny_recipe)
     with pytest.raises(CheckpointError, match="weights do not fit this recipe's model"):
         other.load_checkpoint(tmp_path / "last.pt")
+
+
+def test_training_logs_through_torchrl_csv_logger(tiny_recipe, tmp_path):
+    tiny_recipe["train"].update(epochs=1, log_every_steps=1)
+    exp = build(tiny_recipe)
+    res = exp.train(output_dir=tmp_path, progress=False)
+    rows = (tmp_path / "logs" / "scalars" / "loss.csv").read_text().strip().splitlines()
+    assert len(rows) == res.steps and rows[-1].startswith(f"{res.steps},")
+    assert (tmp_path / "logs" / "scalars" / "lr.csv").exists()
+
+
+def test_bf16_autocast_option_trains(tiny_recipe, tmp_path):
+    tiny_recipe["train"].update(epochs=1, autocast_bf16=True, logger="none")
+    res = build(tiny_recipe).train(output_dir=tmp_path, progress=False)
+    assert res.steps > 0 and res.loss == res.loss  # finite
+    assert not (tmp_path / "logs").exists()

@@ -47,6 +47,7 @@ class DreamDiffusionPolicy(KeyedModule):
         obs_steps: int = 2,
         action_steps: int = 8,
         world_model_weight: float = 1.0,
+        world_model_target_gradient: bool = True,
     ):
         super().__init__()
         self.encoder = encoder
@@ -61,6 +62,7 @@ class DreamDiffusionPolicy(KeyedModule):
         self.obs_steps = obs_steps
         self.action_steps = action_steps
         self.world_model_weight = world_model_weight
+        self.world_model_target_gradient = world_model_target_gradient
         self.latent_dim = encoder.out_dim
 
     @property
@@ -91,7 +93,13 @@ class DreamDiffusionPolicy(KeyedModule):
                 f"got {pc.shape[1]} and {act.shape[1]}"
             )
         # 2. Encode observations: history O_{0..M-1} and future O_{M..M+N-1}, one shared E_psi.
-        latents = self.encode(pc[:, :n_obs], pos[:, :n_obs])
+        if self.has_world_model and not self.world_model_target_gradient:
+            history = self.encode(pc[:, :M], pos[:, :M])
+            with torch.no_grad():
+                future_targets = self.encode(pc[:, M:n_obs], pos[:, M:n_obs])
+            latents = torch.cat([history, future_targets], 1)
+        else:
+            latents = self.encode(pc[:, :n_obs], pos[:, :n_obs])
         history = latents[:, :M]
         actions = self.normalizer.normalize("action", act[:, :H])
 

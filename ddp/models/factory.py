@@ -32,4 +32,5 @@ def build_model(recipe: Recipe, parts: dict[str, Part]) -> DreamDiffusionPolicy:
         obs_steps=pol.obs_steps,
         action_steps=pol.action_steps,
         world_model_weight=wm.weight,
+        world_model_target_gradient=wm.target_gradient,
     )
