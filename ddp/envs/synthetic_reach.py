@@ -30,6 +30,7 @@ from ddp.registry import register
 CUBE_HALF = 0.02
 ACTION_SCALE = 0.02  # metres per unit action and step
 LIFT_HEIGHT = 0.12
+GRASP_RADIUS = 0.015  # the closing fingers capture a cube centred within 1.5 cm
 START = np.array([0.0, 0.5, 0.2])
 
 
@@ -175,7 +176,7 @@ class SyntheticReachEnv(EnvBase):
         self.ee = self.ee + ACTION_SCALE * np.clip(a[:3], -1, 1)
         self.ee[2] = max(self.ee[2], 0.0)
         self.grip = float(np.clip(self.grip + 0.5 * np.clip(a[3], -1, 1), 0.0, 1.0))
-        if not self.attached and self.grip >= 1.0 and np.linalg.norm(self.ee - self.cube) < 0.015:
+        if not self.attached and self.grip >= 1.0 and np.linalg.norm(self.ee - self.cube) < GRASP_RADIUS:
             self.attached = True
         if self.attached and self.grip < 0.5:
             self.attached = False
