@@ -72,9 +72,12 @@ class Experiment:
 
         return Trainer(self, output_dir=output_dir, progress=progress).fit(resume=resume)
 
-    def load_checkpoint(self, path: str | os.PathLike, ema: bool = True) -> "Experiment":
-        """Load weights (the EMA weights by default, as evaluated in the paper) into ``model``."""
-        state = load_checkpoint(path)
+    def load_checkpoint(self, path: str | os.PathLike, ema: bool = True, *, state: dict | None = None) -> "Experiment":
+        """Load weights (the EMA weights by default, as evaluated in the paper) into ``model``.
+
+        ``state`` is the checkpoint already read from ``path`` (to avoid reading it twice).
+        """
+        state = load_checkpoint(path) if state is None else state
         weights = state["model"]
         if ema and "ema" in state:
             prefix = "module."
@@ -151,4 +154,4 @@ def experiment_from_checkpoint(path: str | os.PathLike, ema: bool = True) -> Exp
 
     state = load_checkpoint(path)
     exp = Experiment(yaml.safe_load(state["recipe"]), f"{path}#recipe")
-    return exp.load_checkpoint(path, ema=ema)
+    return exp.load_checkpoint(path, ema=ema, state=state)
