@@ -31,26 +31,6 @@ import time
 import warnings
 
 import numpy as np
-import torch
-
-
-def run_episode(env, policy, seed: int, id_frame: bool, task_spec) -> bool:
-    from ddp.envs.metaworld_tasks import id_frame_state
-
-    td = env.reset(seed=seed)
-    for _ in range(env.config.max_episode_steps):
-        p = td["privileged"]
-        state = p["state"].double().numpy()
-        if id_frame:
-            state = id_frame_state(task_spec, state, p["displacement"].numpy(), p["ee_offset"].numpy())
-        action = np.clip(policy.get_action(state), -1.0, 1.0)
-        td["action"] = torch.as_tensor(action, dtype=torch.float32)
-        td = env.step(td)["next"]
-        if bool(td["success"]):
-            return True
-        if bool(td["done"]):
-            return False
-    return False
 
 
 def main(argv=None) -> int:
@@ -62,10 +42,11 @@ def main(argv=None) -> int:
     warnings.filterwarnings("ignore", message="Constant")  # metaworld's policies warn about their own gains
 
     try:
-        from metaworld.policies import ENV_POLICY_MAP
+        import metaworld  # noqa: F401
     except ImportError:
         print('metaworld is not installed: pip install "ddp[sim]"', file=sys.stderr)
         return 1
+    from ddp.data.sources.metaworld_expert import MetaWorldExpert, expert_succeeds
     from ddp.envs.metaworld import MetaWorldEnv, MetaWorldEnvConfig
     from ddp.envs.metaworld_tasks import PAPER_TASKS
 
@@ -84,7 +65,6 @@ def main(argv=None) -> int:
     rows = []
     start = time.time()
     for task in tasks:
-        spec = PAPER_TASKS[task]
         cells = []
         for _, displace, oracle, id_frame in settings:
             cfg = MetaWorldEnvConfig(
@@ -95,8 +75,8 @@ def main(argv=None) -> int:
                 oracle_tracking=oracle,
             )
             env = MetaWorldEnv(cfg)
-            policy = ENV_POLICY_MAP[spec.env_name]()
-            wins = sum(run_episode(env, policy, seed, id_frame, spec) for seed in range(args.episodes))
+            expert = MetaWorldExpert(task, id_frame=id_frame)
+            wins = sum(expert_succeeds(env, expert, seed) for seed in range(args.episodes))
             env.close()
             cells.append(wins / args.episodes)
         rows.append((task, cells))

@@ -12,7 +12,7 @@ import torch
 
 from ddp.config import from_dict, to_dict
 from ddp.envs.metaworld import MetaWorldEnvConfig
-from ddp.envs.metaworld_tasks import PAPER_TASKS, id_frame_state
+from ddp.envs.metaworld_tasks import PAPER_TASKS
 from ddp.errors import RecipeError
 
 SMALL = dict(image_size=32, num_points=64)  # cheap clouds where geometry does not matter
@@ -42,25 +42,9 @@ def _step(env, td, action):
 
 def _run_expert(env, seed, id_frame):
     """Scripted expert through the TorchRL env; True at the first success."""
-    from metaworld.policies import ENV_POLICY_MAP
+    from ddp.data.sources.metaworld_expert import MetaWorldExpert, expert_succeeds
 
-    spec = env.task
-    policy = ENV_POLICY_MAP[spec.env_name]()
-    td = env.reset(seed=seed)
-    for _ in range(env.config.max_episode_steps):
-        p = td["privileged"]
-        state = p["state"].double().numpy()
-        if id_frame:
-            state = id_frame_state(spec, state, p["displacement"].numpy(), p["ee_offset"].numpy())
-        td = _step(env, td, np.clip(policy.get_action(state), -1, 1))
-        if td["success"].item():
-            return True
-        if td["done"].item():
-            return False
-    return False
-
-
-# --------------------------------------------------------------------- config
+    return expert_succeeds(env, MetaWorldExpert(env.config.task, id_frame=id_frame), seed)
 
 
 def test_config_validation_names_field_and_value():

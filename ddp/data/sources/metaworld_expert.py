@@ -40,6 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ddp.config import to_dict
 from ddp.data.demos import generate_demos
@@ -111,9 +112,14 @@ def _digest(data) -> str:
 
 
 class MetaWorldExpert:
-    """MetaWorld's scripted policy as a ``tensordict -> action`` callable (reads ``("privileged", "state")``)."""
+    """MetaWorld's scripted policy as a ``tensordict -> action`` callable (reads ``("privileged", "state")``).
 
-    def __init__(self, task: str):
+    With ``id_frame=True`` the expert reads the state with the applied displacement and
+    end-effector shifts removed (``id_frame_state``): it acts as if nothing had moved, the
+    situation the paper's oracle tracking is meant to rescue.
+    """
+
+    def __init__(self, task: str, id_frame: bool = False):
         try:
             from metaworld.policies import ENV_POLICY_MAP
         except ImportError as err:
@@ -122,13 +128,35 @@ class MetaWorldExpert:
         if name not in ENV_POLICY_MAP:
             raise ValueError(f"metaworld has no scripted policy for task {task!r}")
         self.policy = ENV_POLICY_MAP[name]()
+        self.id_frame = None
+        if id_frame:
+            from ddp.envs.metaworld_tasks import PAPER_TASKS
+
+            self.id_frame = PAPER_TASKS[task]
 
     def __call__(self, tensordict) -> np.ndarray:
         state = tensordict.get(("privileged", "state")).detach().cpu().double().numpy()
+        if self.id_frame is not None:
+            from ddp.envs.metaworld_tasks import id_frame_state
+
+            p = tensordict.get("privileged")
+            state = id_frame_state(self.id_frame, state, p["displacement"].numpy(), p["ee_offset"].numpy())
         with warnings.catch_warnings():  # the policies warn that their gains exceed [-1, 1]
             warnings.filterwarnings("ignore", message="Constant")
             action = self.policy.get_action(state)
         return np.clip(action, -1.0, 1.0).astype(np.float32)
+
+
+def expert_succeeds(env, expert, seed: int) -> bool:
+    """Run ``expert`` for one episode of ``env`` from ``seed``; True at the first success."""
+    td = env.reset(seed=seed)
+    while True:
+        td["action"] = torch.as_tensor(expert(td), dtype=torch.float32)
+        td = env.step(td)["next"]
+        if bool(td["success"]):
+            return True
+        if bool(td["done"]):
+            return False
 
 
 class MetaWorldExpertDemos:
