@@ -80,6 +80,9 @@ def _print_eval(report: dict, out_dir) -> None:
 
     print(markdown_table({report["recipe"]: report}), end="")
     print(f"results: {out_dir}/results.json, table: {out_dir}/table.md, plots: {', '.join(report.get('plots', [])) or 'none'}")
+    videos = [v for p in report["protocols"].values() for v in p.get("videos", [])]
+    if videos:
+        print(f"videos: {len(videos)} under {out_dir}/videos/")
 
 
 def cmd_eval(args) -> int:
@@ -92,7 +95,8 @@ def cmd_eval(args) -> int:
     protocols = args.protocols.split(",") if args.protocols else None
     out_dir = Path(args.output_dir or exp.recipe.eval.output_dir.format(name=exp.recipe.name))
     report = exp.evaluate(protocols, episodes=args.episodes, output_dir=out_dir, num_envs=args.num_envs,
-                          progress=not args.quiet)
+                          progress=not args.quiet, video=True if args.video else None,
+                          parallel=True if args.parallel else None)
     _print_eval(report, out_dir)
     return 0
 
@@ -196,6 +200,8 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--protocols", help="comma-separated protocols (default: the recipe's eval.protocols)")
     p.add_argument("--episodes", type=int, help="episodes per protocol (default: eval.episodes)")
     p.add_argument("--num-envs", type=int, help="environments stepped together (default: eval.num_envs)")
+    p.add_argument("--parallel", action="store_true", help="one worker process per env (torchrl ParallelEnv; default: eval.parallel)")
+    p.add_argument("--video", action="store_true", help="record the first eval.video_episodes episodes per env and protocol, labelled with the controller's mode")
     p.add_argument("--output-dir", help="default: the recipe's eval.output_dir")
     p.add_argument("--raw-weights", action="store_true", help="evaluate the raw weights instead of the EMA")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

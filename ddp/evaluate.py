@@ -32,6 +32,7 @@ from tqdm.auto import tqdm
 
 from ddp.envs.chunked import ChunkedEnv, chunk_render_config
 from ddp.errors import RecipeError
+from ddp.video import VideoSettings
 
 
 @dataclass(frozen=True)
@@ -78,13 +79,41 @@ def _env_overrides(exp, protocol: Protocol, max_steps: int | None) -> dict:
     return over
 
 
-def make_chunked_env(exp, seed: int, overrides: dict | None = None) -> ChunkedEnv:
-    pol = exp.recipe.policy
-    part = exp.parts["env"]
-    cfg = dataclasses.replace(part.config, **(overrides or {}))
-    cfg = chunk_render_config(cfg, pol.action_steps, pol.obs_steps)
-    base = part.plugin.factory(cfg, seed=seed)
-    return ChunkedEnv(base, pol.action_steps, pol.obs_steps, safe_lift=exp.recipe.controller.safe_lift)
+@dataclass(frozen=True, eq=False)  # hashed by identity (torchrl puts factories in a set)
+class ChunkedEnvFactory:
+    """Builds one evaluation env (``ChunkedEnv`` around the recipe's env plugin); picklable, so
+    ``ParallelEnv`` can call it in a worker process (it re-imports the recipe's ``plugins`` there)."""
+
+    plugin: str
+    config: object
+    action_steps: int
+    obs_steps: int
+    safe_lift: float = 0.0
+    seed: int = 0
+    video: VideoSettings | None = None
+    plugin_modules: tuple[str, ...] = ()
+
+    def __call__(self) -> ChunkedEnv:
+        from ddp import registry
+
+        if self.plugin_modules:
+            registry.import_plugin_modules(list(self.plugin_modules))
+        cfg = chunk_render_config(self.config, self.action_steps, self.obs_steps)
+        base = registry.get("env", self.plugin).factory(cfg, seed=self.seed)
+        return ChunkedEnv(base, self.action_steps, self.obs_steps, safe_lift=self.safe_lift, video=self.video)
+
+
+def env_factory(exp, seed: int, overrides: dict | None = None, video: VideoSettings | None = None) -> ChunkedEnvFactory:
+    pol, part = exp.recipe.policy, exp.parts["env"]
+    return ChunkedEnvFactory(
+        plugin=part.plugin.name, config=dataclasses.replace(part.config, **(overrides or {})),
+        action_steps=pol.action_steps, obs_steps=pol.obs_steps, safe_lift=exp.recipe.controller.safe_lift,
+        seed=seed, video=video, plugin_modules=tuple(exp.recipe.plugins),
+    )
+
+
+def make_chunked_env(exp, seed: int, overrides: dict | None = None, video: VideoSettings | None = None) -> ChunkedEnv:
+    return env_factory(exp, seed, overrides, video)()
 
 
 def _chunks_per_episode(exp, overrides: dict) -> int:
@@ -96,18 +125,32 @@ def _chunks_per_episode(exp, overrides: dict) -> int:
 
 
 def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: dict, num_envs: int = 1,
-                     desc: str = "", progress: bool = True) -> list[dict]:
-    """Run ``episodes`` seeded episodes with a torchrl Collector; one dict of results per episode."""
+                     desc: str = "", progress: bool = True, parallel: bool = False,
+                     video: VideoSettings | None = None) -> list[dict]:
+    """Run ``episodes`` seeded episodes with a torchrl Collector; one dict of results per episode.
+
+    ``num_envs > 1`` steps several envs as one batch: in this process (``SerialEnv``) or, with
+    ``parallel=True``, each in its own worker process (``ParallelEnv``). Env ``i`` runs the
+    seeds ``seed + i * ceil(episodes / num_envs) + 0, 1, ...``. ``video`` records each env's
+    first ``video.episodes`` episodes.
+    """
     from torchrl.collectors import Collector
-    from torchrl.envs import SerialEnv
+    from torchrl.envs import ParallelEnv, SerialEnv
 
     chunks = _chunks_per_episode(exp, overrides)
     num_envs = max(1, min(num_envs, episodes))
     per_env = math.ceil(episodes / num_envs)
+
+    def factory(i: int) -> ChunkedEnvFactory:
+        first = seed + i * per_env
+        vid = None if video is None else dataclasses.replace(video, first_seed=first)
+        return env_factory(exp, first, overrides, vid)
+
     if num_envs == 1:
-        env = make_chunked_env(exp, seed, overrides)
+        env = factory(0)()
     else:
-        env = SerialEnv(num_envs, [lambda i=i: make_chunked_env(exp, seed + i * per_env, overrides) for i in range(num_envs)])
+        batched = ParallelEnv if parallel else SerialEnv
+        env = batched(num_envs, [factory(i) for i in range(num_envs)])
     controller.reset()
     collector = Collector(
         env, controller, frames_per_batch=chunks * num_envs, total_frames=chunks * num_envs * per_env,
@@ -131,7 +174,7 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
     finally:
         bar.close()
         collector.shutdown()
-        env.close()
+        env.close(raise_if_closed=False)
     return sorted(results, key=lambda r: r["seed"])
 
 
@@ -150,18 +193,25 @@ def _summarise(traj, env_index: int, seed: int) -> dict:
     return out
 
 
-def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True) -> float:
+def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
+                  parallel: bool = False) -> float:
     """Set a discrepancy detector's tau from D_R-I observed in ID rollouts of the base policy."""
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False)
     res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=dict(exp.recipe.eval.env), num_envs=num_envs,
-                           desc="calibrate tau", progress=progress)
+                           desc="calibrate tau", progress=progress, parallel=parallel)
     values = [v for r in res for v in r.get("discrepancy", []) if not math.isnan(v)]
     return detector.calibrate(values)
 
 
 def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: str | Path | None = None,
-             progress: bool = True, num_envs: int | None = None, seed: int | None = None) -> dict:
-    """Run the named protocols; write results.json, table.md and plots under ``output_dir``."""
+             progress: bool = True, num_envs: int | None = None, seed: int | None = None,
+             video: bool | None = None, parallel: bool | None = None) -> dict:
+    """Run the named protocols; write results.json, table.md and plots under ``output_dir``.
+
+    With ``video`` (default ``eval.video``) the first ``eval.video_episodes`` episodes of each
+    env are recorded under ``output_dir/videos/<protocol>/seed<N>.mp4`` (GIF without the
+    ``video`` extra), labelled with the controller's mode.
+    """
     cfg = exp.recipe.eval
     if exp.parts.get("env") is None:
         raise RecipeError("evaluation needs an env section", source=exp.source, key="env")
@@ -177,6 +227,8 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     episodes = episodes or cfg.episodes
     num_envs = num_envs or cfg.num_envs
     seed = cfg.seed if seed is None else seed
+    video = cfg.video if video is None else video
+    parallel = cfg.parallel if parallel is None else parallel
     out_dir = Path(output_dir or cfg.output_dir.format(name=exp.recipe.name))
     out_dir.mkdir(parents=True, exist_ok=True)
     report = {"recipe": exp.recipe.name, "episodes": episodes, "seed": seed, "protocols": {}}
@@ -188,11 +240,15 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
         if hasattr(ctrl.detector, "calibrate") and ctrl.detector.tau is None:
             if tau is None:
                 tau = calibrate_tau(exp, ctrl.detector, episodes=cfg.calibration_episodes, seed=seed + 100_000,
-                                    num_envs=num_envs, progress=progress)
+                                    num_envs=num_envs, progress=progress, parallel=parallel)
             ctrl.detector.tau = tau
+        vid = None
+        if video:
+            vid = VideoSettings(str(out_dir / "videos" / name), episodes=cfg.video_episodes, size=cfg.video_size,
+                                fps=cfg.video_fps, camera=cfg.video_camera)
         t0 = time.perf_counter()
         res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=overrides, num_envs=num_envs,
-                               desc=name, progress=progress)
+                               desc=name, progress=progress, parallel=parallel, video=vid)
         rate = float(np.mean([r["success"] for r in res]))
         report["protocols"][name] = {
             "success_rate": rate,
@@ -202,6 +258,9 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
             "tau": getattr(ctrl.detector, "tau", None),
             "per_episode": res,
         }
+        if vid is not None:
+            files = sorted(p for p in Path(vid.directory).glob("seed*") if p.suffix in (".mp4", ".gif"))
+            report["protocols"][name]["videos"] = [str(p) for p in files]
     (out_dir / "results.json").write_text(json.dumps(report, indent=1))
     (out_dir / "table.md").write_text(markdown_table({exp.recipe.name: report}))
     from ddp.plots import plot_report

@@ -155,7 +155,12 @@ class EvalConfig:
     calibration_episodes: int = 5  # ID episodes used to calibrate a null discrepancy tau
     occlusion_chunk: int = 3
     occlusion_chunks: int = 2
-    video: bool = False
+    parallel: bool = False  # num_envs > 1: one worker process per env (torchrl ParallelEnv) instead of SerialEnv
+    video: bool = False  # record rollout videos labelled with the controller's mode
+    video_episodes: int = 2  # recorded episodes per env and protocol
+    video_size: int = 256  # pixels (square)
+    video_fps: int = 20
+    video_camera: str | None = None  # the env's camera name (None: its default)
     output_dir: str = "runs/{name}/eval"
     env: dict = field(default_factory=dict)  # env config overrides for evaluation (e.g. held-out initial states)
     env_oracle_tracking: bool = False  # OOD protocols with tracking: the env's oracle tracks and snaps back
@@ -165,6 +170,10 @@ class EvalConfig:
             raise ValueError(f"episodes must be >= 1; got {self.episodes}")
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1; got {self.num_envs}")
+        if self.video_episodes < 0:
+            raise ValueError(f"video_episodes must be >= 0; got {self.video_episodes}")
+        if self.video_size < 16 or self.video_fps < 1:
+            raise ValueError(f"video_size must be >= 16 and video_fps >= 1; got {self.video_size}, {self.video_fps}")
 
 
 @dataclass

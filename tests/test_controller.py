@@ -1,5 +1,8 @@
 """The DDP controller (Algorithm 2) on the synthetic env: modes, tracking, imagination, recovery."""
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
@@ -133,3 +136,55 @@ def test_evaluate_writes_results_table_and_plots(exp, tmp_path):
     assert (tmp_path / "success.png").exists() and (tmp_path / "discrepancy_ood_ddp.png").exists()
     mode = rep["protocols"]["ood_ddp"]["per_episode"][0]["mode"]
     assert mode[2] == 1.0
+
+
+def test_video_frames_are_labelled_with_the_controller_mode(tmp_path):
+    from ddp.video import ID_COLOUR, IMAGINED_COLOUR, SHIFT_COLOUR, VideoSettings
+
+    base = SyntheticReachEnv(SyntheticReachEnvConfig(num_points=32, max_episode_steps=16), seed=0)
+    env = ChunkedEnv(base, action_steps=8, obs_steps=2, video=VideoSettings(str(tmp_path), episodes=1, size=64))
+    td = env.reset()
+    frames = env.recorder.frames
+    assert len(frames) == 1 and frames[0].shape == (64, 64, 3)
+    td["action"] = torch.zeros(8, 4)
+    td["ddp", "mode"], td["ddp", "imagined"] = torch.tensor(0), torch.tensor(False)
+    td = env.step(td)["next"]
+    assert len(frames) == 9 and tuple(frames[-1][0, 0]) == ID_COLOUR
+    td["action"] = torch.zeros(8, 4)
+    td["ee_shift"] = torch.tensor([0.05, 0.0, 0.0])
+    td["ddp", "mode"], td["ddp", "imagined"] = torch.tensor(1), torch.tensor(True)
+    env.step(td)  # the episode ends: the video is written and the frames dropped
+    assert env.recorder.frames == [] and len(env.recorder.written) == 1
+    video = env.recorder.written[0]
+    assert video.name.startswith("seed0.") and video.stat().st_size > 0
+    env.reset()  # the second episode is not recorded (episodes=1)
+    assert not env.recorder.recording and env.recorder.frames == []
+    # the imagined chunk is red with a blue (tracking shift) ring, whatever the file format
+    from ddp.video import ChunkLabel, annotate
+
+    label = ChunkLabel(chunk=1, mode=1, imagined=True, shifted=True)
+    img = annotate(np.zeros((64, 64, 3), np.uint8), label.caption(), label.colour(), flash=SHIFT_COLOUR)
+    assert tuple(img[0, 0]) == IMAGINED_COLOUR and tuple(img[5, 5]) == SHIFT_COLOUR
+    assert label.caption().startswith("chunk 1  OOD: imagining")
+
+
+def test_chunked_env_without_render_rgb_refuses_video(tmp_path):
+    from ddp.video import VideoSettings
+
+    base = SyntheticReachEnv(SyntheticReachEnvConfig(num_points=32), seed=0)
+    base.render_rgb = None
+    with pytest.raises(ValueError, match="cannot record videos"):
+        ChunkedEnv(base, action_steps=8, obs_steps=2, video=VideoSettings(str(tmp_path)))
+
+
+def test_evaluate_videos_and_parallel_envs_match_serial(exp, tmp_path):
+    exp.recipe.eval.video_episodes = 1
+    exp.recipe.eval.video_size = 32
+    serial = exp.evaluate(["ood_ddp"], episodes=4, num_envs=2, output_dir=tmp_path / "s", progress=False, video=True)
+    videos = serial["protocols"]["ood_ddp"]["videos"]
+    assert [Path(v).stem for v in videos] == ["seed1000", "seed1002"]  # env i starts at seed + 2 i
+    parallel = exp.evaluate(["ood_ddp"], episodes=4, num_envs=2, output_dir=tmp_path / "p", progress=False,
+                            parallel=True)
+    for key in ("seed", "success", "mode", "chunks"):
+        got = [e[key] for e in parallel["protocols"]["ood_ddp"]["per_episode"]]
+        assert got == [e[key] for e in serial["protocols"]["ood_ddp"]["per_episode"]], key

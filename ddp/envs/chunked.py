@@ -12,6 +12,10 @@ chunk's sum, and ``chunk_index`` (chunks executed since reset).
 When the base env's config has ``obs_every`` / ``obs_history`` fields they
 are set to N / M, so point clouds are rendered only for the frames the
 policy consumes.
+
+With ``video=VideoSettings(...)`` the first episodes are recorded through the
+base env's ``render_rgb`` (one frame per simulated step), each frame labelled
+with the controller's decision for its chunk (``ddp.video``).
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
+
+from ddp.video import ChunkLabel, EpisodeRecorder, VideoSettings
 
 STACKED = ("point_cloud", "agent_pos")
 
@@ -37,10 +43,14 @@ def chunk_render_config(config, action_steps: int, obs_steps: int):
 class ChunkedEnv(EnvBase):
     """Executes N-step action chunks on ``base`` and returns the last M observations."""
 
-    def __init__(self, base: EnvBase, action_steps: int, obs_steps: int, safe_lift: float = 0.0):
+    def __init__(self, base: EnvBase, action_steps: int, obs_steps: int, safe_lift: float = 0.0,
+                 video: VideoSettings | None = None):
         super().__init__(device=base.device, batch_size=torch.Size([]))
         if action_steps < obs_steps:
             raise ValueError(f"action_steps ({action_steps}) must be >= obs_steps ({obs_steps})")
+        if video is not None and not callable(getattr(base, "render_rgb", None)):
+            raise ValueError(f"{type(base).__name__} cannot record videos: it has no render_rgb(width, height) method")
+        self.recorder = EpisodeRecorder(video) if video is not None else None
         self.base = base
         self.action_steps = action_steps
         self.obs_steps = obs_steps
@@ -90,6 +100,9 @@ class ChunkedEnv(EnvBase):
         self._frames = [first] * self.obs_steps
         self._chunk = 0
         self._success = False
+        if self.recorder is not None:
+            self.recorder.start_episode()
+            self._record(None)
         out = self._observation(first)
         for key in ("done", "terminated", "truncated"):
             out.set(key, torch.zeros(1, dtype=torch.bool, device=self.device))
@@ -101,6 +114,7 @@ class ChunkedEnv(EnvBase):
             self.base.shift_end_effector(shift.detach().cpu().numpy(), safe_lift=self.safe_lift)
         actions = tensordict.get("action")
         reward = torch.zeros(self.reward_spec.shape, device=self.device)
+        label = ChunkLabel.from_tensordict(tensordict, self._chunk, self._success) if self.recorder is not None else None
         last = None
         for a in actions:
             step = self.base.step(TensorDict({"action": a}, batch_size=[], device=self.device))
@@ -108,6 +122,9 @@ class ChunkedEnv(EnvBase):
             self._frames.append(last)
             reward = reward + last.get("reward", torch.zeros_like(reward))
             self._success = self._success or bool(last.get("success", torch.zeros(1, dtype=torch.bool)).any())
+            if label is not None:
+                label.success = self._success
+                self._record(label)
             if bool(last.get("done").any()):
                 break
         self._frames = self._frames[-self.obs_steps :]
@@ -116,8 +133,17 @@ class ChunkedEnv(EnvBase):
         out.set("reward", reward)
         for key in ("done", "terminated", "truncated"):
             out.set(key, last.get(key))
+        if self.recorder is not None and bool(last.get("done").any()):
+            self.recorder.finish()
         return out
 
+    def _record(self, label: ChunkLabel | None) -> None:
+        if self.recorder.recording:
+            s = self.recorder.settings
+            self.recorder.add(self.base.render_rgb(s.size, s.size, camera=s.camera), label)
+
     def close(self, *, raise_if_closed: bool = True) -> None:
+        if self.recorder is not None:
+            self.recorder.finish()
         self.base.close()
         super().close()

@@ -297,6 +297,7 @@ class MetaWorldEnv(EnvBase):
         self._site_pos0 = model.site_pos.copy()
 
         self._renderer = None
+        self._rgb_renderers: dict = {}  # (width, height) -> colour renderer for videos
         self._cloud_fn = None
         if cfg.render_point_cloud:
             self._cloud_fn = DepthToCloud(
@@ -400,11 +401,12 @@ class MetaWorldEnv(EnvBase):
         )
 
     def close(self, *, raise_if_closed: bool = True) -> None:
-        """Free the depth renderer (its EGL context) and the simulator."""
-        renderer = self.__dict__.get("_renderer")
-        if renderer is not None:
-            renderer.close()
-            self._renderer = None
+        """Free the renderers (their EGL contexts) and the simulator."""
+        for renderer in [self.__dict__.get("_renderer"), *self.__dict__.get("_rgb_renderers", {}).values()]:
+            if renderer is not None:
+                renderer.close()
+        self._renderer = None
+        self._rgb_renderers = {}
         sim = self.__dict__.get("sim")
         if sim is not None:
             sim.close()
@@ -514,6 +516,27 @@ class MetaWorldEnv(EnvBase):
         if not np.all(np.isinf(self.sim.goal_space.high)):
             self.sim.goal_space = Box(-np.inf, np.inf, shape=(3,), dtype=np.float64)
             self.sim.__dict__.pop("sawyer_observation_space", None)  # a cached_property
+
+    def render_rgb(self, width: int = 256, height: int = 256, camera: str | None = None) -> np.ndarray:
+        """A colour frame ``[height, width, 3]`` uint8 of the current state (videos); ``camera``
+        defaults to the point-cloud camera. MetaWorld's cameras are mounted upside down (their
+        images come out with the table on top), so frames are flipped vertically."""
+        mj, model, data = self._mj, self.sim.model, self.sim.data
+        renderers = self._rgb_renderers
+        if (width, height) not in renderers:
+            model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
+            model.vis.global_.offheight = max(model.vis.global_.offheight, height)
+            renderers[(width, height)] = mj.Renderer(model, height, width)
+            _track_renderer(renderers[(width, height)])
+        name = camera or self.config.camera
+        try:
+            cam = model.camera(name).id
+        except KeyError:
+            cameras = [model.camera(i).name for i in range(model.ncam)]
+            raise ValueError(f"video camera must be one of {cameras}; got {name!r}{suggest(name, cameras)}") from None
+        renderer = renderers[(width, height)]
+        renderer.update_scene(data, camera=cam)
+        return renderer.render()[::-1].copy()
 
     def _render_due(self, t: int) -> bool:
         every, hist = self.config.obs_every, self.config.obs_history

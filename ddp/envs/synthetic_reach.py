@@ -204,6 +204,28 @@ class SyntheticReachEnv(EnvBase):
             self.displacement = self.displacement + delta
         return delta
 
+    def render_rgb(self, width: int = 256, height: int = 256, camera: str | None = None) -> np.ndarray:
+        """A top-down colour frame ``[height, width, 3]`` uint8 (videos): table grey, cube red, gripper blue,
+        its height shown by the marker size. ``camera`` must be None or ``"top"``."""
+        if camera not in (None, "top"):
+            raise ValueError(f"the synthetic_reach env has one video camera, 'top'; got {camera!r}")
+        image = np.full((height, width, 3), 225, dtype=np.uint8)
+        x0, x1, y0, y1 = -0.5, 0.5, 0.4, 0.9  # the table
+
+        def pixel(p):
+            u = int(np.clip((p[0] - x0) / (x1 - x0), 0, 1) * (width - 1))
+            v = int(np.clip((y1 - p[1]) / (y1 - y0), 0, 1) * (height - 1))
+            return u, v
+
+        def disc(p, radius, colour):
+            u, v = pixel(p)
+            yy, xx = np.ogrid[:height, :width]
+            image[(xx - u) ** 2 + (yy - v) ** 2 <= radius**2] = colour
+
+        disc(self.cube, max(2, int(CUBE_HALF / (x1 - x0) * width) + 1), (200, 40, 40))
+        disc(self.ee, max(2, int(3 + 20 * self.ee[2])), (40, 70, 200) if self.grip < 0.5 else (20, 20, 90))
+        return image
+
     def expert(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The scripted expert's action for the current state (reads the simulator, not the observation)."""
         return torch.from_numpy(expert_action(self.ee, self.cube, self.attached))
