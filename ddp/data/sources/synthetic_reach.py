@@ -5,9 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-import torch
-from tensordict import TensorDict
-
+from ddp.data.demos import generate_demos
 from ddp.data.episodes import Episodes
 from ddp.envs.synthetic_reach import SyntheticReachEnv, SyntheticReachEnvConfig
 from ddp.registry import register
@@ -41,30 +39,21 @@ class SyntheticReach:
         self.cfg = config
         self.seed = seed
 
-    def episode(self, index: int) -> tuple[TensorDict, bool]:
-        env = SyntheticReachEnv(self.env_config, seed=self.seed * 100_003 + index)
-        td = env.reset()
-        rows, success_at = [], None
-        for t in range(self.env_config.max_episode_steps):
-            action = env.expert(td)
-            rows.append(TensorDict({"point_cloud": td["point_cloud"], "agent_pos": td["agent_pos"], "action": action}, []))
-            td = env.step(td.set("action", action))["next"]
-            if success_at is None and bool(td["success"]):
-                success_at = t
-            if success_at is not None and t >= success_at + self.cfg.stop_after_success:
-                break
-        return torch.stack(rows), success_at is not None
-
     def load(self) -> Episodes:
-        kept, i = [], 0
-        while len(kept) < self.cfg.episodes:
-            td, ok = self.episode(i)
-            i += 1
-            if ok:
-                kept.append(td)
-            if i > 10 * self.cfg.episodes:
-                raise RuntimeError("synthetic_reach expert keeps failing; check the env's cube_x / cube_y")
-        return Episodes.from_list(kept)
+        """Successful expert episodes; attempt ``i`` is the env's episode with seed ``seed * 100003 + i``."""
+        env = SyntheticReachEnv(self.env_config)  # one env; generate_demos seeds every attempt
+        demos, _ = generate_demos(
+            lambda: env,
+            env.expert,  # the scripted expert reads the simulator state, not the observation
+            episodes=self.cfg.episodes,
+            seed=self.seed * 100_003,
+            max_steps=self.env_config.max_episode_steps,
+            stop_after_success=self.cfg.stop_after_success,
+            max_attempts=10 * self.cfg.episodes,
+            progress=False,
+            desc="synthetic_reach demos",
+        )
+        return demos
 
 
 register("dataset", "synthetic_reach", config=SyntheticReachDataConfig)(SyntheticReach)
