@@ -63,10 +63,8 @@ MetaWorld env).
 
 from __future__ import annotations
 
-import atexit
 import functools
 import os
-import weakref
 
 # MuJoCo picks its OpenGL backend when it is first imported (torchrl imports
 # it too): render headless through EGL unless the user chose a backend.
@@ -83,6 +81,7 @@ from torchrl.envs import EnvBase  # noqa: E402
 
 from ddp.envs.disturbances import OCCLUSION_MODES, Displacement, Occlusion  # noqa: E402
 from ddp.envs.metaworld_tasks import METAWORLD_V3_TASKS, PAPER_TASKS, MetaWorldTask, env_name  # noqa: E402
+from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
 from ddp.envs.pointcloud import DepthToCloud  # noqa: E402
 from ddp.errors import suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
@@ -105,37 +104,8 @@ def _import_sim():
         import mujoco
     except ImportError as err:
         raise ImportError(f'the MetaWorld env needs metaworld and mujoco ({err}): pip install "ddp[sim]"') from None
-    if os.environ["MUJOCO_GL"].lower() == "egl":
-        from mujoco import gl_context
-
-        if getattr(gl_context, "GLContext", None) is None or gl_context.GLContext.__module__ != "mujoco.egl":
-            from mujoco.egl import GLContext
-
-            gl_context.GLContext = GLContext
+    use_egl()
     return metaworld, mujoco
-
-
-_OPEN_RENDERERS: weakref.WeakSet = weakref.WeakSet()
-_exit_hook_registered = False
-
-
-def _close_open_renderers() -> None:
-    for renderer in list(_OPEN_RENDERERS):
-        renderer.close()
-
-
-def _track_renderer(renderer) -> None:
-    """Close renderers of envs nobody closed before EGL shuts down at exit (no EGL errors at exit).
-
-    ``atexit`` runs hooks last-in first-out and MuJoCo registers EGL's
-    termination when its first context is created, so a hook registered after
-    that closes the renderers first.
-    """
-    global _exit_hook_registered
-    if not _exit_hook_registered:
-        atexit.register(_close_open_renderers)
-        _exit_hook_registered = True
-    _OPEN_RENDERERS.add(renderer)
 
 
 @functools.lru_cache(maxsize=None)
@@ -281,10 +251,7 @@ class MetaWorldEnv(EnvBase):
         self._widen_goal_space()
         model = self.sim.model
 
-        cameras = [model.camera(i).name for i in range(model.ncam)]
-        if cfg.camera not in cameras:
-            raise ValueError(f"camera must be one of {cameras}; got {cfg.camera!r}{suggest(cfg.camera, cameras)}")
-        self._cam = model.camera(cfg.camera).id
+        self._cam = SceneRenderer(model).camera_id(cfg.camera)
         if cfg.camera_pos is not None:
             model.cam_pos[self._cam] = cfg.camera_pos
         bodies = self.task.bodies if self.task is not None else ()
@@ -296,8 +263,7 @@ class MetaWorldEnv(EnvBase):
         self._body_pos0 = model.body_pos.copy()
         self._site_pos0 = model.site_pos.copy()
 
-        self._renderer = None
-        self._rgb_renderers: dict = {}  # (width, height) -> colour renderer for videos
+        self._renderer = SceneRenderer(model)  # depth for clouds, colour for videos (lazy)
         self._cloud_fn = None
         if cfg.render_point_cloud:
             self._cloud_fn = DepthToCloud(
@@ -402,11 +368,9 @@ class MetaWorldEnv(EnvBase):
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         """Free the renderers (their EGL contexts) and the simulator."""
-        for renderer in [self.__dict__.get("_renderer"), *self.__dict__.get("_rgb_renderers", {}).values()]:
-            if renderer is not None:
-                renderer.close()
-        self._renderer = None
-        self._rgb_renderers = {}
+        renderer = self.__dict__.get("_renderer")
+        if renderer is not None:
+            renderer.close()
         sim = self.__dict__.get("sim")
         if sim is not None:
             sim.close()
@@ -521,42 +485,16 @@ class MetaWorldEnv(EnvBase):
         """A colour frame ``[height, width, 3]`` uint8 of the current state (videos); ``camera``
         defaults to the point-cloud camera. MetaWorld's cameras are mounted upside down (their
         images come out with the table on top), so frames are flipped vertically."""
-        mj, model, data = self._mj, self.sim.model, self.sim.data
-        renderers = self._rgb_renderers
-        if (width, height) not in renderers:
-            model.vis.global_.offwidth = max(model.vis.global_.offwidth, width)
-            model.vis.global_.offheight = max(model.vis.global_.offheight, height)
-            renderers[(width, height)] = mj.Renderer(model, height, width)
-            _track_renderer(renderers[(width, height)])
-        name = camera or self.config.camera
-        try:
-            cam = model.camera(name).id
-        except KeyError:
-            cameras = [model.camera(i).name for i in range(model.ncam)]
-            raise ValueError(f"video camera must be one of {cameras}; got {name!r}{suggest(name, cameras)}") from None
-        renderer = renderers[(width, height)]
-        renderer.update_scene(data, camera=cam)
-        return renderer.render()[::-1].copy()
+        cam = self._renderer.camera_id(camera or self.config.camera, what="video camera")
+        return self._renderer.rgb(self.sim.data, cam, width, height, flip=True)
 
     def _render_due(self, t: int) -> bool:
         every, hist = self.config.obs_every, self.config.obs_history
         return t % every == 0 or t % every > every - hist
 
     def _render_cloud(self) -> np.ndarray:
-        mj, model, data = self._mj, self.sim.model, self.sim.data
-        if self._renderer is None:
-            size = self.config.image_size
-            model.vis.quality.shadowsize = 0  # depth only: no shadows or multisampling
-            model.vis.quality.offsamples = 0
-            model.vis.global_.offwidth = max(model.vis.global_.offwidth, size)
-            model.vis.global_.offheight = max(model.vis.global_.offheight, size)
-            self._renderer = mj.Renderer(model, size, size)
-            _track_renderer(self._renderer)
-            self._renderer.enable_depth_rendering()
-            self._scene_option = mj.MjvOption()
-            self._scene_option.sitegroup[:] = 0  # hide the goal marker and other sites
-        self._renderer.update_scene(data, camera=self._cam, scene_option=self._scene_option)
-        depth = self._renderer.render()
+        data = self.sim.data
+        depth = self._renderer.depth(data, self._cam, self.config.image_size)
         return self._cloud_fn(depth, data.cam_xpos[self._cam], data.cam_xmat[self._cam])
 
     def _output(self, *, reward: float | None, success: bool, terminated: bool, truncated: bool) -> TensorDictBase:
