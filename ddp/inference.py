@@ -201,6 +201,19 @@ class DDPController(KeyedModule):
                 if not ood_now[b]:
                     s.ood = False  # D_R-I <= tau: return to reality
 
+        # Keep tracking in OOD mode: an object the tracker could not see when OOD began (zero
+        # offset, e.g. hidden behind the arm) joins C_disp once it is seen displaced.
+        for b, s in enumerate(self.states):
+            if not (s.ood and offsets is not None and s.displaced is not None):
+                continue
+            seen = (offsets[b].norm(dim=-1) > MIN_OFFSET) & ~s.displaced & ~s.recovered
+            if bool(seen.any()):
+                s.offsets = torch.where(seen[:, None], offsets[b], s.offsets)
+                s.displaced |= seen
+                target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
+                if self.track and target is not None and bool(seen[target]):
+                    ee_shift[b] += offsets[b][target]
+
         # O_curr: real latents in ID, imagined ones in OOD (Enter Imagination)
         imagined = [self.imagine and s.ood and s.has_forecast for s in self.states]
         self._forecast([b for b in range(B) if imagined[b]])

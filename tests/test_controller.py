@@ -188,3 +188,31 @@ def test_evaluate_videos_and_parallel_envs_match_serial(exp, tmp_path):
     for key in ("seed", "success", "mode", "chunks"):
         got = [e[key] for e in parallel["protocols"]["ood_ddp"]["per_episode"]]
         assert got == [e[key] for e in serial["protocols"]["ood_ddp"]["per_episode"]], key
+
+
+def test_object_hidden_at_ood_entry_is_tracked_once_seen(exp):
+    """A tracker that cannot see the object when OOD begins (zero offset) and sees it one cycle later."""
+
+    class LateTracker(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.calls = 0
+
+        def forward(self, td):
+            self.calls += 1
+            offsets = td.get(("privileged", "displacement")).clone()
+            if self.calls <= 3:  # cycles 0-2: hidden (OOD is detected at cycle 2)
+                offsets.zero_()
+            td.set(("ddp", "offsets"), offsets)
+            return td
+
+        def reset(self):
+            self.calls = 0
+
+    ctrl = exp.make_controller()
+    ctrl.tracker = LateTracker()
+    r = rollout(exp, ctrl)
+    mode, shift = r["ddp", "mode"].tolist(), r["ee_shift"]
+    assert mode[2] == 1 and torch.allclose(shift[2], torch.zeros(3))  # OOD, but nothing seen to track yet
+    assert torch.allclose(shift[3], torch.tensor(DELTA))  # seen at cycle 3: tracked then
+    assert torch.allclose(shift[4], -torch.tensor(DELTA))  # and recovered at the end of its subtask
