@@ -1,0 +1,353 @@
+"""FoundationPose tracker: Delta p_Cj from NVIDIA's FoundationPose 6D pose estimator (the paper's tracker).
+
+The paper queries FoundationPose(++) for each displaced object's resting pose
+``p_Cj`` in SE(3) and compares it with the expected ID pose ``p_Cj^exp``
+(Sec. 3.3, "Simplified Object Tracking under OOD"). This adapter does that
+per environment: on the first observation of an episode (``chunk_index ==
+0``) it registers every object (RGB-D + mask + the object's mesh -> the 4x4
+object-in-camera pose) and keeps that pose, in the base frame, as
+``p^exp``; on later calls it follows each object (``track_one``, or a fresh
+``register`` with ``mode: register``) and reports the base-frame motion of a
+chosen object point (its mesh origin by default). Carried objects (near the
+end-effector) read zero, as in the ``pointcloud`` tracker.
+
+FoundationPose is not a PyPI package: it is a checkout of NVlabs/FoundationPose
+(GitHub) with its CUDA extensions built (its ``build_all.sh``) and its two
+networks' weights in ``<checkout>/weights/`` (refiner ``2023-10-28-18-33-37``,
+scorer ``2024-01-11-20-02-45``). This module imports it lazily, only when the
+tracker is built, and never downloads anything: without the package, its
+weights, a GPU or the meshes, building the tracker fails with one line that
+says what to install. FoundationPose++'s bundled ``FoundationPose/`` folder has
+the same ``estimater`` API and works as ``repo`` too (its 2D tracker and
+Kalman filter are not used).
+
+Masks for registration come from the tracking camera's segmentation image
+(simulation) or, on hardware, from the ``pointcloud`` tracker's geometric
+isolation (table removal + clustering near ``isolation.expected_positions``).
+
+The FoundationPose call sits behind :class:`ObjectPoseEstimator`; the tracker
+takes any factory of such estimators (``estimator_factory``), which is how
+its geometry is tested with poses read from the simulator.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Literal, Protocol
+
+import numpy as np
+import torch
+
+from ddp.errors import PluginError
+from ddp.keys import KeyedModule
+from ddp.registry import register
+from ddp.trackers import geometry as geo
+from ddp.trackers.pointcloud import IsolationConfig, ObjectIsolator, near_gripper, robot_aware_offset
+
+#: FoundationPose's weight folders (refiner, scorer), as its predictors hard-code them
+WEIGHT_RUNS = ("2023-10-28-18-33-37", "2024-01-11-20-02-45")
+
+INSTALL_HINT = (
+    "clone NVlabs/FoundationPose (GitHub), build it (its build_all.sh: nvdiffrast, pytorch3d, mycpp), "
+    "put its refiner and scorer weights in <checkout>/weights/ and set controller.tracker.repo to the checkout"
+)
+
+
+class ObjectPoseEstimator(Protocol):
+    """One object's 6D pose from RGB-D, in the OpenCV camera frame (4x4, metres)."""
+
+    def register(self, K: np.ndarray, rgb: np.ndarray | None, depth: np.ndarray, mask: np.ndarray,
+                 iterations: int) -> np.ndarray:
+        """Pose from scratch, given the object's pixels ``mask`` [H, W] bool."""
+
+    def track(self, K: np.ndarray, rgb: np.ndarray | None, depth: np.ndarray, iterations: int) -> np.ndarray:
+        """Pose refined from the previous one (after a ``register``)."""
+
+
+#: object index -> a fresh estimator for that object (one per environment and object)
+EstimatorFactory = Callable[[int], ObjectPoseEstimator]
+
+
+@dataclass
+class FoundationPoseTrackerConfig:
+    repo: str | None = None  # FoundationPose checkout (added to sys.path); None: `module` is importable as is
+    module: str = "estimater"  # the module with FoundationPose, ScorePredictor, PoseRefinePredictor
+    weights_dir: str | None = None  # checked for the two weight folders; default <repo>/weights (where FP reads)
+    meshes: list[str] = field(default_factory=list)  # one mesh file per object, env object order, in metres
+    mesh_scale: float = 1.0  # multiply mesh coordinates (e.g. 0.001 for millimetre meshes)
+    num_objects: int | None = None  # default len(meshes)
+    mode: Literal["track", "register"] = "track"  # follow with track_one, or register from scratch every call
+    register_iterations: int = 5  # refiner iterations of register (FoundationPose's demo: 5)
+    track_iterations: int = 2  # refiner iterations of track_one (demo: 2)
+    point: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # object-frame point whose motion is reported
+    masks: Literal["auto", "mask", "geometry"] = "auto"  # registration masks: segmentation image or geometry
+    isolation: IsolationConfig = field(default_factory=IsolationConfig)  # geometric masks (hardware)
+    min_mask_pixels: int = 20  # fewer object pixels: not visible
+    carried_radius: float = 0.05  # m from the end-effector; 0 disables the carried check
+    ee_dims: list[int] = field(default_factory=lambda: [0, 1, 2])
+    min_offset: float = 0.01  # m; smaller motions are reported as zero
+    device: str = "cuda:0"
+    debug_dir: str | None = None  # FoundationPose's debug output; default a temporary folder
+
+    def __post_init__(self):
+        if self.mesh_scale <= 0:
+            raise ValueError(f"mesh_scale must be > 0; got {self.mesh_scale}")
+        if len(self.point) != 3 or len(self.ee_dims) != 3:
+            raise ValueError("point and ee_dims must have 3 entries")
+        if self.register_iterations < 1 or self.track_iterations < 1:
+            raise ValueError("register_iterations and track_iterations must be >= 1")
+
+
+def _fail(message: str) -> PluginError:
+    return PluginError("tracker 'foundationpose': " + " ".join(str(message).split()))
+
+
+# --------------------------------------------------------------------------- the real FoundationPose
+class FoundationPoseEstimator:
+    """:class:`ObjectPoseEstimator` around one ``estimater.FoundationPose`` instance."""
+
+    def __init__(self, estimator):
+        self.estimator = estimator
+
+    @staticmethod
+    def _rgb(rgb, depth):
+        if rgb is None:
+            raise KeyError("foundationpose tracker needs the tracking camera's colour image (\"tracking\", \"rgb\") "
+                           "[H, W, 3] uint8; enable rgb on the env's tracking camera")
+        return np.ascontiguousarray(rgb[..., :3], dtype=np.uint8)
+
+    def register(self, K, rgb, depth, mask, iterations):
+        return np.asarray(self.estimator.register(
+            K=np.asarray(K, dtype=np.float64), rgb=self._rgb(rgb, depth), depth=np.asarray(depth, dtype=np.float32),
+            ob_mask=np.asarray(mask, dtype=bool), iteration=iterations,
+        )).reshape(4, 4)
+
+    def track(self, K, rgb, depth, iterations):
+        return np.asarray(self.estimator.track_one(
+            rgb=self._rgb(rgb, depth), depth=np.asarray(depth, dtype=np.float32),
+            K=np.asarray(K, dtype=np.float64), iteration=iterations,
+        )).reshape(4, 4)
+
+
+def foundationpose_factory(config: FoundationPoseTrackerConfig) -> EstimatorFactory:
+    """Import FoundationPose, check its weights and the meshes, load both networks once; one-line errors."""
+    if config.repo is not None:
+        repo = Path(config.repo).expanduser().resolve()
+        if not repo.is_dir():
+            raise _fail(f"repo {config.repo} is not a directory; {INSTALL_HINT}")
+        if str(repo) not in sys.path:
+            sys.path.insert(0, str(repo))
+    try:
+        spec = importlib.util.find_spec(config.module)
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None or spec.origin is None:
+        where = f" in {config.repo}" if config.repo else " (set repo to a FoundationPose checkout)"
+        raise _fail(f"cannot find FoundationPose's module '{config.module}'{where}: {INSTALL_HINT}")
+    code_dir = Path(spec.origin).resolve().parent
+    expected_weights = code_dir / "weights"
+    weights = Path(config.weights_dir).expanduser().resolve() if config.weights_dir else expected_weights
+    missing = [r for r in WEIGHT_RUNS
+               if not ((weights / r / "model_best.pth").is_file() and (weights / r / "config.yml").is_file())]
+    if missing:
+        raise _fail(f"FoundationPose weights missing in {weights} ({', '.join(missing)}/model_best.pth and "
+                    f"config.yml): download the refiner and scorer weights named in FoundationPose's readme "
+                    f"into that folder")
+    if weights != expected_weights.resolve():
+        raise _fail(f"FoundationPose loads its weights from {expected_weights} (hard-coded); "
+                    f"link weights_dir {weights} there")
+    if not config.meshes:
+        raise _fail("set meshes: one mesh file per tracked object, in the env's object order")
+    absent = [m for m in config.meshes if not Path(m).expanduser().is_file()]
+    if absent:
+        raise _fail(f"mesh files not found: {', '.join(absent)}")
+    if not torch.cuda.is_available():
+        raise _fail("FoundationPose needs a CUDA GPU; none is visible to torch")
+    try:
+        fp = importlib.import_module(config.module)
+        trimesh = getattr(fp, "trimesh", None) or importlib.import_module("trimesh")
+    except Exception as err:  # noqa: BLE001 - any import failure of the third-party stack
+        raise _fail(f"importing FoundationPose failed ({type(err).__name__}: {err}); install its requirements "
+                    f"(requirements.txt, build_all.sh)") from None
+    for name in ("FoundationPose", "ScorePredictor", "PoseRefinePredictor"):
+        if not hasattr(fp, name):
+            raise _fail(f"module '{config.module}' ({spec.origin}) has no {name}: is it FoundationPose's estimater.py?")
+
+    meshes = []
+    for path in config.meshes:
+        mesh = trimesh.load(str(Path(path).expanduser()), force="mesh")
+        if config.mesh_scale != 1.0:
+            mesh.apply_scale(config.mesh_scale)
+        meshes.append(mesh)
+    scorer, refiner = fp.ScorePredictor(), fp.PoseRefinePredictor()
+    dr = getattr(fp, "dr", None)
+    glctx = dr.RasterizeCudaContext(config.device) if dr is not None else None
+    debug_dir = config.debug_dir or tempfile.mkdtemp(prefix="ddp_foundationpose_")
+    os.makedirs(debug_dir, exist_ok=True)
+
+    def make(k: int) -> ObjectPoseEstimator:
+        if k >= len(meshes):
+            raise ValueError(f"foundationpose tracker: object {k} has no mesh ({len(meshes)} meshes configured)")
+        mesh = meshes[k]
+        est = fp.FoundationPose(model_pts=mesh.vertices, model_normals=mesh.vertex_normals, mesh=mesh,
+                                scorer=scorer, refiner=refiner, glctx=glctx, debug=0, debug_dir=debug_dir)
+        return FoundationPoseEstimator(est)
+
+    return make
+
+
+# --------------------------------------------------------------------------- the tracker
+@dataclass
+class _ObjectPose:
+    ref: np.ndarray  # reference pose in the base frame (4x4): p^exp
+    last: np.ndarray  # last known base-frame position of the reported point
+    anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    carried: bool = False
+    grasp_disp: np.ndarray | None = None
+    ee_rel: np.ndarray | None = None
+    pred: np.ndarray | None = None
+    last_disp: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+def _as_numpy(x):
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+@register("tracker", "foundationpose", config=FoundationPoseTrackerConfig)
+class FoundationPoseTracker(KeyedModule):
+    """Delta p_Cj from FoundationPose 6D poses (RGB-D + mask + mesh), expressed in the robot base frame."""
+
+    default_in_keys = {
+        "depth": ("tracking", "depth"),
+        "intrinsics": ("tracking", "intrinsics"),
+        "cam_to_world": ("tracking", "cam_to_world"),
+        "rgb": ("tracking", "rgb"),
+        "segmentation": ("tracking", "segmentation"),  # optional: registration masks in simulation
+        "agent_pos": "agent_pos",  # optional: carried-object check
+        "chunk_index": "chunk_index",  # optional: 0 starts an episode (new reference)
+    }
+    default_out_keys = {
+        "offsets": ("ddp", "offsets"),
+        "visible": ("ddp", "object_visible"),
+        "carried": ("ddp", "object_carried"),
+    }
+
+    def __init__(self, config: FoundationPoseTrackerConfig, estimator_factory: EstimatorFactory | None = None):
+        super().__init__()
+        self.config = config
+        self.factory = estimator_factory if estimator_factory is not None else foundationpose_factory(config)
+        self.num_objects = config.num_objects if config.num_objects is not None else len(config.meshes)
+        if self.num_objects < 1:
+            raise _fail("set meshes (one per object) or num_objects")
+        self.isolator = ObjectIsolator(config.isolation, config.masks, 1, config.min_mask_pixels)
+        self.estimators: dict[tuple[int, int], ObjectPoseEstimator] = {}
+        self.states: dict[int, list] = {}
+        self.point = np.asarray(config.point, dtype=np.float64)
+
+    def reset(self):
+        self.states = {}
+
+    def _estimator(self, b: int, k: int) -> ObjectPoseEstimator:
+        if (b, k) not in self.estimators:
+            self.estimators[(b, k)] = self.factory(k)
+        return self.estimators[(b, k)]
+
+    def _masks(self, depth, K, T, seg, ee, anchors) -> list:
+        """Per-object pixel masks [H, W] bool (None where the object was not found)."""
+        found = self.isolator.isolate(depth, K, T, seg, self.num_objects, ee, anchors=anchors)
+        masks = []
+        for f in found:
+            if f is None:
+                masks.append(None)
+                continue
+            m = np.zeros(depth.size, dtype=bool)
+            m[f[1]] = True
+            masks.append(m.reshape(depth.shape))
+        return masks
+
+    def _position(self, pose_world: np.ndarray) -> np.ndarray:
+        return geo.transform_points(pose_world, self.point[None])[0]
+
+    def _reference(self, b, depth, K, T, rgb, seg, ee) -> list:
+        anchors = self.config.isolation.expected_positions
+        if not self.isolator.uses_mask(seg) and anchors is None:
+            raise ValueError(
+                "foundationpose tracker: without a segmentation image set isolation.expected_positions "
+                "(each object's approximate ID position, to find its registration mask)"
+            )
+        masks = self._masks(depth, K, T, seg, ee, anchors or [None] * self.num_objects)
+        states = []
+        for k, mask in enumerate(masks):
+            if mask is None:
+                states.append(None)
+                continue
+            pose = self._estimator(b, k).register(K, rgb, depth, mask, self.config.register_iterations)
+            world = T @ pose
+            states.append(_ObjectPose(ref=world, last=self._position(world)))
+        return states
+
+    def _track_env(self, b, states, depth, K, T, rgb, seg, ee):
+        c = self.config
+        n = self.num_objects
+        offsets, visible, carried = np.zeros((n, 3)), np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        masks = None
+        if c.mode == "register":
+            masks = self._masks(depth, K, T, seg, ee, [s.last if s is not None else None for s in states])
+        for k, s in enumerate(states):
+            if s is None:
+                continue
+            near = near_gripper(s, ee, c.carried_radius)
+            est = self._estimator(b, k)
+            if masks is not None:
+                pose = est.register(K, rgb, depth, masks[k], c.register_iterations) if masks[k] is not None else None
+            else:
+                pose = est.track(K, rgb, depth, c.track_iterations)
+            disp = position = None
+            if pose is not None and np.all(np.isfinite(pose)):
+                world = T @ pose  # object in base frame = camera in base frame @ object in camera
+                position = self._position(world)
+                disp = position - self._position(s.ref)  # Delta p = p - p^exp
+                visible[k] = True
+            offsets[k], carried[k] = robot_aware_offset(s, disp, position, ee, near, c.carried_radius, c.min_offset)
+        return offsets, visible, carried
+
+    def forward(self, td):
+        unbatched = td.batch_dims == 0
+        if unbatched:
+            td = td.unsqueeze(0)
+        B = td.batch_size[0]
+        depth = _as_numpy(td.get(self.key("depth"))).astype(np.float32)
+        K = _as_numpy(td.get(self.key("intrinsics"))).astype(np.float64)
+        T = _as_numpy(td.get(self.key("cam_to_world"))).astype(np.float64)
+        rgb = td.get(self.key("rgb"), None)
+        rgb = None if rgb is None else _as_numpy(rgb)
+        seg = td.get(self.key("segmentation"), None)
+        seg = None if seg is None else _as_numpy(seg)
+        pos = td.get(self.key("agent_pos"), None)
+        ee = None if pos is None else _as_numpy(pos).reshape(B, -1, pos.shape[-1])[:, -1][:, self.config.ee_dims]
+        chunk = td.get(self.key("chunk_index"), None)
+        chunk = None if chunk is None else chunk.reshape(B).tolist()
+
+        results = []
+        for b in range(B):
+            args = (depth[b], K[b], T[b], None if rgb is None else rgb[b], None if seg is None else seg[b],
+                    None if ee is None else ee[b].astype(np.float64))
+            if b not in self.states or (chunk is not None and chunk[b] == 0):
+                self.states[b] = self._reference(b, *args)  # p^exp: the episode's first (ID) frame
+                n = self.num_objects
+                visible = np.array([s is not None for s in self.states[b]])
+                results.append((np.zeros((n, 3)), visible, np.zeros(n, dtype=bool)))
+                continue
+            results.append(self._track_env(b, self.states[b], *args))
+        device = td.device if td.device is not None else torch.device("cpu")
+        offsets = np.stack([r[0] for r in results])
+        td.set(self.key("offsets"), torch.as_tensor(offsets, dtype=torch.float32, device=device))
+        td.set(self.key("visible"), torch.as_tensor(np.stack([r[1] for r in results]), device=device))
+        td.set(self.key("carried"), torch.as_tensor(np.stack([r[2] for r in results]), device=device))
+        return td.squeeze(0) if unbatched else td
