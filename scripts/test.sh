@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# Install ddp with its test extras into ./.venv and run the test suite.
+# Install ddp with its test extras into ./.venv (and the franky-sim Franka simulator into
+# ./.venv-franky-sim, for the real-robot backend's tests) and run the test suite.
 #   bash scripts/test.sh           # default suite (slow tests excluded)
 #   bash scripts/test.sh --slow    # only the slow tests
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh dev,metaworld
+bash scripts/setup.sh dev,sim,video
+bash scripts/setup_franky_sim.sh
 VENV="${DDP_VENV:-.venv}"
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
 if [ "${1:-}" = "--slow" ]; then
