@@ -196,7 +196,8 @@ def _summarise(traj, env_index: int, seed: int) -> dict:
 def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
                   parallel: bool = False) -> float:
     """Set a discrepancy detector's tau from D_R-I observed in ID rollouts of the base policy."""
-    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False)
+    # the base policy, with the world model's forecast made every cycle so that D_R-I is measured
+    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
     res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=dict(exp.recipe.eval.env), num_envs=num_envs,
                            desc="calibrate tau", progress=progress, parallel=parallel)
     values = [v for r in res for v in r.get("discrepancy", []) if not math.isnan(v)]

@@ -90,11 +90,13 @@ class Experiment:
         return self
 
     def make_controller(self, *, detector: dict | None = None, imagine: bool | None = None,
-                        track: bool | None = None, tracker: bool = True, seed: int | None = None):
+                        track: bool | None = None, tracker: bool = True, seed: int | None = None,
+                        forecast_every_cycle: bool | None = None):
         """The DDP controller (Algorithm 2) around ``model`` from the recipe's ``controller`` section.
 
         ``detector`` replaces the recipe's detector section (e.g. ``{"name": "never"}``); ``imagine``
-        / ``track`` override the recipe's flags; ``tracker=False`` drops tracking and recovery.
+        / ``track`` / ``forecast_every_cycle`` override the recipe's flags; ``tracker=False`` drops
+        tracking and recovery.
         """
         from ddp.inference import DDPController, Subtask
         from ddp.schema import resolve_part
@@ -116,7 +118,7 @@ class Experiment:
             subtasks=subtasks,
             imagine=c.imagine if imagine is None else imagine,
             track=c.track if track is None else track,
-            forecast_every_cycle=c.forecast_every_cycle,
+            forecast_every_cycle=c.forecast_every_cycle if forecast_every_cycle is None else forecast_every_cycle,
             seed=self.recipe.seed if seed is None else seed,
         )
 

@@ -216,3 +216,16 @@ def test_object_hidden_at_ood_entry_is_tracked_once_seen(exp):
     assert mode[2] == 1 and torch.allclose(shift[2], torch.zeros(3))  # OOD, but nothing seen to track yet
     assert torch.allclose(shift[3], torch.tensor(DELTA))  # seen at cycle 3: tracked then
     assert torch.allclose(shift[4], -torch.tensor(DELTA))  # and recovered at the end of its subtask
+
+
+def test_tau_calibrated_from_id_rollouts_without_forecast_every_cycle(exp, tmp_path):
+    assert not exp.recipe.controller.forecast_every_cycle
+    from ddp.schema import resolve_part
+
+    exp.parts["controller.detector"] = resolve_part(
+        "detector", {"name": "discrepancy", "tau": None}, key="controller.detector", source="<test>"
+    )
+    exp.recipe.eval.calibration_episodes = 1
+    rep = exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path, progress=False)
+    tau = rep["protocols"]["ood_ddp"]["tau"]
+    assert tau is not None and tau > 0
