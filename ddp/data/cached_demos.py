@@ -53,7 +53,7 @@ class CachedDemosConfig:
 
     Attributes:
         episodes: successful demonstrations to keep.
-        max_steps: steps per episode at most.
+        max_steps: steps per episode at most (null: the env's episode length).
         stop_after_success: end an episode this many steps after the first success
             (null: the full ``max_steps`` length).
         seed: seed of the first attempt (attempt i uses seed + i); null: the recipe's seed.
@@ -64,7 +64,7 @@ class CachedDemosConfig:
     """
 
     episodes: int = 50
-    max_steps: int = 200
+    max_steps: int | None = 200
     stop_after_success: int | None = 10
     seed: int | None = 0
     path: str = "data/{task}"
@@ -74,8 +74,8 @@ class CachedDemosConfig:
     def __post_init__(self):
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1; got {self.episodes}")
-        if self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1; got {self.max_steps}")
+        if self.max_steps is not None and self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1 or null; got {self.max_steps}")
         if self.stop_after_success is not None and self.stop_after_success < 0:
             raise ValueError(f"stop_after_success must be >= 0 or null; got {self.stop_after_success}")
         if self.max_attempts is not None and self.max_attempts < self.episodes:
@@ -129,6 +129,8 @@ class CachedExpertDemos:
                 key="env",
             )
         self.check_task(task)
+        if config.max_steps is None:
+            config = dataclasses.replace(config, max_steps=self.env_horizon(env.config))
         self.cfg = config
         self.env_part = env
         self.seed = config.seed if config.seed is not None else seed
@@ -150,6 +152,10 @@ class CachedExpertDemos:
     # ---------------------------------------------------------- subclass hooks
     def check_task(self, task) -> None:
         """Raise a RecipeError when the recipe's task dimensions do not match the demos."""
+
+    def env_horizon(self, env_config) -> int:
+        """Episode length used when ``max_steps`` is null: the env's ``max_episode_steps``."""
+        return int(env_config.max_episode_steps)
 
     def make_expert(self) -> Callable:
         """The expert: ``tensordict -> action`` (optionally with ``reset()``)."""

@@ -30,7 +30,6 @@ dataset.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from importlib import resources
 
@@ -121,15 +120,6 @@ class AdroitExpertConfig(CachedDemosConfig):
     stop_after_success: int | None = None
     path: str = "data/adroit/{task}"
 
-    def __post_init__(self):
-        if self.max_steps is not None and self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1 or null; got {self.max_steps}")
-        steps, self.max_steps = self.max_steps, 1 if self.max_steps is None else self.max_steps
-        try:  # the shared checks (they need an integer max_steps)
-            super().__post_init__()
-        finally:
-            self.max_steps = steps
-
 
 class AdroitExpertDemos(CachedExpertDemos):
     """Adroit DAPG-expert demos (successful episodes only), cached under data/adroit/<task>."""
@@ -142,8 +132,6 @@ class AdroitExpertDemos(CachedExpertDemos):
     record_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos", "full_state": ("privileged", "state")}
 
     def __init__(self, config: AdroitExpertConfig, *, task, seed: int = 0, env=None):
-        if config.max_steps is None and env is not None and env.plugin.name == self.env_name:
-            config = dataclasses.replace(config, max_steps=env.config.max_episode_steps)
         self._env_config = env.config if env is not None else None
         super().__init__(config, task=task, seed=seed, env=env)
 

@@ -26,7 +26,6 @@ to the recipe's seed, so that training seeds share one dataset.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 from ddp.data.cached_demos import CachedDemosConfig, CachedExpertDemos
@@ -68,15 +67,6 @@ class FrankaOracleConfig(CachedDemosConfig):
     path: str = "data/franka/{task}_{num_points}"
     variance: bool = True
 
-    def __post_init__(self):
-        if self.max_steps is not None and self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1 or null; got {self.max_steps}")
-        steps, self.max_steps = self.max_steps, 1 if self.max_steps is None else self.max_steps
-        try:  # the shared checks (they need an integer max_steps)
-            super().__post_init__()
-        finally:
-            self.max_steps = steps
-
 
 class FrankaOracleDemos(CachedExpertDemos):
     """Scripted-oracle demos of a Franka task (successful episodes only), cached under data/franka/."""
@@ -96,10 +86,11 @@ class FrankaOracleDemos(CachedExpertDemos):
                     f"object poses); got {env.config.backend!r}",
                     key="env.backend",
                 )
-            if config.max_steps is None:
-                config = dataclasses.replace(config, max_steps=env.config.episode_steps)
         self.variance = config.variance
         super().__init__(config, task=task, seed=seed, env=env)
+
+    def env_horizon(self, env_config) -> int:
+        return int(env_config.episode_steps)
 
     def check_task(self, task) -> None:
         if (task.action_dim, task.agent_pos_dim, task.point_dim) != (ACTION_DIM, AGENT_POS_DIM, 3):
