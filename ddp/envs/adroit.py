@@ -66,6 +66,7 @@ from tensordict import TensorDict, TensorDictBase  # noqa: E402
 from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
 from torchrl.envs import EnvBase  # noqa: E402
 
+from ddp.envs.chunked import render_due  # noqa: E402
 from ddp.envs.adroit_tasks import ADROIT_TASKS, CROP_MAX, CROP_MIN, HAND_JOINTS, AdroitTask  # noqa: E402
 from ddp.envs.disturbances import OCCLUSION_MODES, Occlusion  # noqa: E402
 from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
@@ -327,8 +328,7 @@ class AdroitEnv(EnvBase):
 
     # ---------------------------------------------------------------- helpers
     def _render_due(self, t: int) -> bool:
-        every, hist = self.config.obs_every, self.config.obs_history
-        return t % every == 0 or t % every > every - hist
+        return render_due(t, self.config.obs_every, self.config.obs_history)
 
     def _render_cloud(self) -> np.ndarray:
         # data.cam_xpos / cam_xmat follow the re-posed camera after any mj_forward / mj_step (reset runs one)

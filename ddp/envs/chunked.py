@@ -32,6 +32,12 @@ from ddp.video import ChunkLabel, EpisodeRecorder, VideoSettings
 STACKED = ("point_cloud", "agent_pos")
 
 
+def render_due(t: int, obs_every: int, obs_history: int) -> bool:
+    """Whether an env configured with ``obs_every`` / ``obs_history`` renders after ``t`` actions:
+    the last ``obs_history`` frames of every ``obs_every``-step chunk (and the chunk start)."""
+    return t % obs_every == 0 or t % obs_every > obs_every - obs_history
+
+
 def chunk_render_config(config, action_steps: int, obs_steps: int):
     """``config`` with rendering limited to the frames a chunked policy reads (when supported)."""
     names = {f.name for f in dataclasses.fields(config)}

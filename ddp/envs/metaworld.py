@@ -79,6 +79,7 @@ from tensordict import TensorDict, TensorDictBase  # noqa: E402
 from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
 from torchrl.envs import EnvBase  # noqa: E402
 
+from ddp.envs.chunked import render_due  # noqa: E402
 from ddp.envs.disturbances import OCCLUSION_MODES, Displacement, Occlusion  # noqa: E402
 from ddp.envs.metaworld_tasks import METAWORLD_V3_TASKS, PAPER_TASKS, MetaWorldTask, env_name  # noqa: E402
 from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
@@ -489,8 +490,7 @@ class MetaWorldEnv(EnvBase):
         return self._renderer.rgb(self.sim.data, cam, width, height, flip=True)
 
     def _render_due(self, t: int) -> bool:
-        every, hist = self.config.obs_every, self.config.obs_history
-        return t % every == 0 or t % every > every - hist
+        return render_due(t, self.config.obs_every, self.config.obs_history)
 
     def _render_cloud(self) -> np.ndarray:
         data = self.sim.data

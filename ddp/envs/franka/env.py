@@ -80,6 +80,7 @@ from tensordict import TensorDict, TensorDictBase  # noqa: E402
 from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
 from torchrl.envs import EnvBase  # noqa: E402
 
+from ddp.envs.chunked import render_due  # noqa: E402
 from ddp.envs.disturbances import OCCLUSION_MODES, Displacement, Occlusion  # noqa: E402
 from ddp.envs.franka.control import ACTION_DIM, AGENT_POS_DIM, FrankaControl, agent_pos, mat_to_quat  # noqa: E402
 from ddp.envs.franka.pointcloud import FrameToCloud  # noqa: E402
@@ -487,8 +488,7 @@ class FrankaEnv(EnvBase):
             self._tracked[i] = self.shift_end_effector(delta, safe_lift=row.safe_lift)
 
     def _render_due(self, t: int) -> bool:
-        every, hist = self.config.obs_every, self.config.obs_history
-        return t % every == 0 or t % every > every - hist
+        return render_due(t, self.config.obs_every, self.config.obs_history)
 
     def _render(self, first: bool = False) -> None:
         cfg = self.config
