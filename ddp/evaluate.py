@@ -232,6 +232,9 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     parallel = cfg.parallel if parallel is None else parallel
     out_dir = Path(output_dir or cfg.output_dir.format(name=exp.recipe.name))
     out_dir.mkdir(parents=True, exist_ok=True)
+    from ddp.train import resolve_device
+
+    exp.model.to(resolve_device(cfg.device))  # the envs stay on the CPU; the controller moves tensors
     report = {"recipe": exp.recipe.name, "episodes": episodes, "seed": seed, "protocols": {}}
     tau = None
     for name in protocols:

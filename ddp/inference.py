@@ -93,9 +93,14 @@ class DDPController(KeyedModule):
         self.seed = seed
         self.reset()
 
+    @property
+    def device(self) -> torch.device:
+        """Where the model's weights are: observations go there, actions come back to the env's device."""
+        return next(self.model.parameters()).device
+
     def reset(self) -> None:
         self.states: list[EnvState] = []
-        self.generator = torch.Generator().manual_seed(self.seed)
+        self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
         for part in (self.detector, self.tracker, self.recovery):
             if part is not None and hasattr(part, "reset"):
                 part.reset()
@@ -150,8 +155,11 @@ class DDPController(KeyedModule):
             if chunk_index[b] == 0:
                 self.states[b] = EnvState()
 
-        # O_real^t = E_psi(X_real^t)
-        real = self.model.encode(td.get(self.key("point_cloud")), td.get(self.key("agent_pos")))
+        # O_real^t = E_psi(X_real^t), on the model's device (the env's tensors may live elsewhere)
+        dev, point_cloud = self.device, td.get(self.key("point_cloud"))
+        if self.generator.device != dev:  # the model moved since reset(): same seed, new device
+            self.generator = torch.Generator(device=dev).manual_seed(self.seed)
+        real = self.model.encode(point_cloud.to(dev), td.get(self.key("agent_pos")).to(dev))
         ee_shift = torch.zeros(B, 3)
         if self.forecast_every_cycle or getattr(self.detector, "needs_discrepancy", False):
             self._forecast(list(range(B)))
@@ -230,7 +238,7 @@ class DDPController(KeyedModule):
             for b, s in enumerate(self.states):
                 s.pending, s.predicted = (current[b], actions[b]), None
 
-        td.set(self.key("action"), actions)
+        td.set(self.key("action"), actions.to(point_cloud.device))
         td.set(self.key("ee_shift"), ee_shift)
         td.set(self.key("mode"), torch.tensor([int(s.ood) for s in self.states]))
         td.set(self.key("imagined"), torch.tensor(imagined))

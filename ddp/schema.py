@@ -156,6 +156,7 @@ class EvalConfig:
     occlusion_chunk: int = 3
     occlusion_chunks: int = 2
     parallel: bool = False  # num_envs > 1: one worker process per env (torchrl ParallelEnv) instead of SerialEnv
+    device: str = "auto"  # where the controller's networks run: auto (cuda when available), cpu, cuda, cuda:1
     video: bool = False  # record rollout videos labelled with the controller's mode
     video_episodes: int = 2  # recorded episodes per env and protocol
     video_size: int = 256  # pixels (square)
