@@ -152,8 +152,8 @@ def build(recipe: str | os.PathLike | dict, overrides: Iterable[str] = ()) -> Ex
 
 def experiment_from_checkpoint(path: str | os.PathLike, ema: bool = True) -> Experiment:
     """Rebuild the experiment stored inside a checkpoint and load its weights."""
-    import yaml
+    from ddp.recipe import load_yaml
 
     state = load_checkpoint(path)
-    exp = Experiment(yaml.safe_load(state["recipe"]), f"{path}#recipe")
+    exp = Experiment(load_yaml(state["recipe"]), f"{path}#recipe")
     return exp.load_checkpoint(path, ema=ema, state=state)

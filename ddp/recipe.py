@@ -16,11 +16,31 @@ import os
 from pathlib import Path
 from typing import Any, Iterable
 
+import re
+
 import yaml
 
 from ddp.errors import RecipeError
 
 BASE_KEY = "base"
+
+
+class RecipeLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2 floats: ``lr: 3e-4`` is a float, not the string '3e-4'."""
+
+
+RecipeLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+RecipeLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^[-+]?(?:[0-9][0-9_]*\.[0-9_]*(?:[eE][-+]?[0-9]+)?|\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+        |[0-9][0-9_]*[eE][-+]?[0-9]+|\.(?:inf|Inf|INF)|[-+]\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."),
+)
+
+
+def load_yaml(text: str) -> Any:
+    """Parse recipe YAML (safe: plain data only) with YAML 1.2 number syntax."""
+    return yaml.load(text, Loader=RecipeLoader)  # noqa: S506 (RecipeLoader is a SafeLoader)
 
 
 def _read_yaml(path: Path, *, referenced_by: str | None = None) -> dict:
@@ -33,7 +53,7 @@ def _read_yaml(path: Path, *, referenced_by: str | None = None) -> dict:
     except OSError as err:
         raise RecipeError(f"cannot read recipe: {err.strerror}", source=str(path)) from None
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
@@ -96,7 +116,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not key or any(not p or not p.replace("_", "").replace("-", "").isalnum() for p in parts):
         raise RecipeError(f"bad override {text!r}: '{key}' is not a dotted key like a.b.c", source="--set")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else None
+        value = load_yaml(raw) if raw.strip() else None
     except yaml.YAMLError:
         raise RecipeError(f"bad override {text!r}: the value is not valid YAML", source="--set", key=key) from None
     return parts, value

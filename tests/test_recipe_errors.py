@@ -172,3 +172,12 @@ def test_resolved_recipe_rebuilds_identically(tmp_path, good):
     assert again.to_yaml() == exp.to_yaml()
     sd1, sd2 = exp.model.state_dict(), again.model.state_dict()
     assert sd1.keys() == sd2.keys() and all(torch.equal(sd1[k], sd2[k]) for k in sd1)
+
+
+def test_exponent_without_a_dot_is_a_float(tmp_path, good):
+    # YAML 1.1 (PyYAML's default) reads 3e-4 as the string '3e-4'; recipes follow YAML 1.2
+    p = write(tmp_path, "r.yaml", "base: good.yaml\ntrain:\n  lr: 3e-4\n  weight_decay: 1E-6\n")
+    exp = build(p, ["world_model.weight=5e-1"])
+    assert exp.recipe.train.lr == pytest.approx(3e-4) and exp.recipe.train.weight_decay == pytest.approx(1e-6)
+    assert exp.recipe.world_model.weight == pytest.approx(0.5)
+    assert error_of(good, ["train.lr=3e"]).startswith(f"{good}: train.lr: expected float, got '3e'")
