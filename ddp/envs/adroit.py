@@ -66,11 +66,10 @@ from tensordict import TensorDict, TensorDictBase  # noqa: E402
 from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
 from torchrl.envs import EnvBase  # noqa: E402
 
-from ddp.envs.chunked import render_due  # noqa: E402
 from ddp.envs.adroit_tasks import ADROIT_TASKS, CROP_MAX, CROP_MIN, HAND_JOINTS, AdroitTask  # noqa: E402
+from ddp.envs.cloud_state import CloudStateMixin  # noqa: E402
 from ddp.envs.disturbances import OCCLUSION_MODES, Occlusion  # noqa: E402
 from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
-from ddp.envs.pointcloud import DepthToCloud  # noqa: E402
 from ddp.errors import DDPError, suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
 
@@ -191,7 +190,7 @@ class AdroitEnvConfig:
 
 
 @register("env", "adroit", config=AdroitEnvConfig)
-class AdroitEnv(EnvBase):
+class AdroitEnv(CloudStateMixin, EnvBase):
     """An Adroit hand task (door, hammer, pen) with DP3 point clouds and optional occlusion."""
 
     def __init__(self, config: AdroitEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
@@ -216,20 +215,13 @@ class AdroitEnv(EnvBase):
             joints = [int(model.actuator_trnid[a, 0]) for a in range(model.nu)]
         self._agent_qpos = np.array([model.jnt_qposadr[j] for j in joints], dtype=np.int64)
 
-        self._cloud_fn = None
-        if cfg.render_point_cloud:
-            self._cloud_fn = DepthToCloud(
-                cfg.image_size, cfg.image_size, float(model.cam_fovy[self._cam]),
-                cfg.crop_min, cfg.crop_max, cfg.num_points,
-            )  # fmt: skip
+        self._init_cloud()
 
         self._next_seed = 0 if seed is None else int(seed)
         self._seed = self._next_seed
         self._steps = 0
         self._rng = np.random.default_rng(0)
         self._state = np.zeros(self.task.state_dim)
-        self._cloud = np.zeros((cfg.num_points, 3), dtype=np.float32)
-        self._occluded = False
         self._make_specs()
 
     # ------------------------------------------------------------------ specs
@@ -265,9 +257,7 @@ class AdroitEnv(EnvBase):
         self._state = state
         self._rng = np.random.default_rng(abs(seed))
         self._steps = 0
-        self._occluded = False
-        if self.config.render_point_cloud:
-            self._cloud = self._render_cloud()
+        self._reset_cloud()
         return self._output(reward=None, success=False, terminated=False, truncated=False)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -276,13 +266,7 @@ class AdroitEnv(EnvBase):
         state, reward, _, _, info = self.sim.step(np.clip(action, -1.0, 1.0))
         self._state = state
         self._steps += 1
-        if cfg.render_point_cloud:
-            occ = self._occlusion_plan
-            self._occluded = occ is not None and occ.covers(self._steps, cfg.chunk_len)
-            if self._occluded:
-                self._cloud = occ.corrupt(cfg.num_points, cfg.crop_min, cfg.crop_max, self._rng)
-            elif self._render_due(self._steps):
-                self._cloud = self._render_cloud()
+        self._update_cloud(self._steps)
         success = bool(info["success"])
         return self._output(
             reward=float(reward),
@@ -290,16 +274,6 @@ class AdroitEnv(EnvBase):
             terminated=success and cfg.terminate_on_success,
             truncated=self._steps >= cfg.max_episode_steps,
         )
-
-    def close(self, *, raise_if_closed: bool = True) -> None:
-        """Free the renderers (their EGL contexts) and the simulator."""
-        renderer = self.__dict__.get("_renderer")
-        if renderer is not None:
-            renderer.close()
-        sim = self.__dict__.get("sim")
-        if sim is not None:
-            sim.close()
-        super().close(raise_if_closed=raise_if_closed)
 
     # ------------------------------------------------------------ public API
     @property
@@ -327,15 +301,6 @@ class AdroitEnv(EnvBase):
         return self._renderer.rgb(self.sim.data, cam, width, height)
 
     # ---------------------------------------------------------------- helpers
-    def _render_due(self, t: int) -> bool:
-        return render_due(t, self.config.obs_every, self.config.obs_history)
-
-    def _render_cloud(self) -> np.ndarray:
-        # data.cam_xpos / cam_xmat follow the re-posed camera after any mj_forward / mj_step (reset runs one)
-        data = self.sim.data
-        depth = self._renderer.depth(data, self._cam, self.config.image_size)
-        return self._cloud_fn(depth, data.cam_xpos[self._cam], data.cam_xmat[self._cam])
-
     def _output(self, *, reward: float | None, success: bool, terminated: bool, truncated: bool) -> TensorDictBase:
         dev = self.device
         f32 = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float32), device=dev)  # noqa: E731

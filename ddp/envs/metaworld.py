@@ -79,11 +79,10 @@ from tensordict import TensorDict, TensorDictBase  # noqa: E402
 from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
 from torchrl.envs import EnvBase  # noqa: E402
 
-from ddp.envs.chunked import render_due  # noqa: E402
+from ddp.envs.cloud_state import CloudStateMixin  # noqa: E402
 from ddp.envs.disturbances import OCCLUSION_MODES, Displacement, Occlusion  # noqa: E402
 from ddp.envs.metaworld_tasks import METAWORLD_V3_TASKS, PAPER_TASKS, MetaWorldTask, env_name  # noqa: E402
 from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
-from ddp.envs.pointcloud import DepthToCloud  # noqa: E402
 from ddp.errors import suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
 
@@ -232,7 +231,7 @@ class MetaWorldEnvConfig:
 
 
 @register("env", "metaworld", config=MetaWorldEnvConfig)
-class MetaWorldEnv(EnvBase):
+class MetaWorldEnv(CloudStateMixin, EnvBase):
     """A MetaWorld v3 task with DP3 point clouds and the paper's OOD disturbances."""
 
     def __init__(self, config: MetaWorldEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
@@ -265,27 +264,16 @@ class MetaWorldEnv(EnvBase):
         self._site_pos0 = model.site_pos.copy()
 
         self._renderer = SceneRenderer(model)  # depth for clouds, colour for videos (lazy)
-        self._cloud_fn = None
-        if cfg.render_point_cloud:
-            self._cloud_fn = DepthToCloud(
-                cfg.image_size,
-                cfg.image_size,
-                float(model.cam_fovy[self._cam]),
-                cfg.crop_min,
-                cfg.crop_max,
-                cfg.num_points,
-            )
+        self._init_cloud()
 
         self._next_seed = 0 if seed is None else int(seed)
         self._steps = 0
         self._task_index = cfg.task_indices[0]
         self._rng = np.random.default_rng(0)
         self._state = np.zeros(39)
-        self._cloud = np.zeros((cfg.num_points, 3), dtype=np.float32)
         self._displacement = np.zeros((len(bodies), 3))
         self._ee_offset = np.zeros(3)
         self._tracked = np.zeros(3)
-        self._occluded = False
         self._make_specs(len(bodies))
 
     # ------------------------------------------------------------------ specs
@@ -334,9 +322,7 @@ class MetaWorldEnv(EnvBase):
         self._displacement[:] = 0.0
         self._ee_offset[:] = 0.0
         self._tracked[:] = 0.0
-        self._occluded = False
-        if cfg.render_point_cloud:
-            self._cloud = self._render_cloud()
+        self._reset_cloud()
         return self._output(reward=None, success=False, terminated=False, truncated=False)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -352,13 +338,7 @@ class MetaWorldEnv(EnvBase):
         state, reward, _, _, info = self.sim.step(np.clip(action, -1.0, 1.0))
         self._state = state
         self._steps = t + 1
-        if cfg.render_point_cloud:
-            occ = self._occlusion_plan
-            self._occluded = occ is not None and occ.covers(self._steps, cfg.chunk_len)
-            if self._occluded:
-                self._cloud = occ.corrupt(cfg.num_points, cfg.crop_min, cfg.crop_max, self._rng)
-            elif self._render_due(self._steps):
-                self._cloud = self._render_cloud()
+        self._update_cloud(self._steps)
         success = bool(info["success"])
         return self._output(
             reward=float(reward),
@@ -366,16 +346,6 @@ class MetaWorldEnv(EnvBase):
             terminated=success and cfg.terminate_on_success,
             truncated=self._steps >= cfg.max_episode_steps,
         )
-
-    def close(self, *, raise_if_closed: bool = True) -> None:
-        """Free the renderers (their EGL contexts) and the simulator."""
-        renderer = self.__dict__.get("_renderer")
-        if renderer is not None:
-            renderer.close()
-        sim = self.__dict__.get("sim")
-        if sim is not None:
-            sim.close()
-        super().close(raise_if_closed=raise_if_closed)
 
     # ------------------------------------------------------- oracle interface
     @property
@@ -488,14 +458,6 @@ class MetaWorldEnv(EnvBase):
         images come out with the table on top), so frames are flipped vertically."""
         cam = self._renderer.camera_id(camera or self.config.camera, what="video camera")
         return self._renderer.rgb(self.sim.data, cam, width, height, flip=True)
-
-    def _render_due(self, t: int) -> bool:
-        return render_due(t, self.config.obs_every, self.config.obs_history)
-
-    def _render_cloud(self) -> np.ndarray:
-        data = self.sim.data
-        depth = self._renderer.depth(data, self._cam, self.config.image_size)
-        return self._cloud_fn(depth, data.cam_xpos[self._cam], data.cam_xmat[self._cam])
 
     def _output(self, *, reward: float | None, success: bool, terminated: bool, truncated: bool) -> TensorDictBase:
         data, dev = self.sim.data, self.device
