@@ -45,10 +45,10 @@ import numpy as np
 import torch
 
 from ddp.errors import PluginError
-from ddp.keys import KeyedModule
 from ddp.registry import register
 from ddp.trackers import geometry as geo
-from ddp.trackers.pointcloud import IsolationConfig, ObjectIsolator, near_gripper, robot_aware_offset
+from ddp.trackers.base import CarriedState, ObjectTracker, as_numpy, tracking_in_keys
+from ddp.trackers.pointcloud import IsolationConfig, ObjectIsolator
 
 #: FoundationPose's weight folders (refiner, scorer), as its predictors hard-code them
 WEIGHT_RUNS = ("2023-10-28-18-33-37", "2024-01-11-20-02-45")
@@ -204,39 +204,17 @@ def foundationpose_factory(config: FoundationPoseTrackerConfig) -> EstimatorFact
 
 # --------------------------------------------------------------------------- the tracker
 @dataclass
-class _ObjectPose:
+class _ObjectPose(CarriedState):
+    """An object's reference pose and, inherited, its carried-check state (``last``: the reported point)."""
+
     ref: np.ndarray  # reference pose in the base frame (4x4): p^exp
-    last: np.ndarray  # last known base-frame position of the reported point
-    anchor: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    carried: bool = False
-    grasp_disp: np.ndarray | None = None
-    ee_rel: np.ndarray | None = None
-    pred: np.ndarray | None = None
-    last_disp: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-
-def _as_numpy(x):
-    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
 @register("tracker", "foundationpose", config=FoundationPoseTrackerConfig)
-class FoundationPoseTracker(KeyedModule):
+class FoundationPoseTracker(ObjectTracker):
     """Delta p_Cj from FoundationPose 6D poses (RGB-D + mask + mesh), expressed in the robot base frame."""
 
-    default_in_keys = {
-        "depth": ("tracking", "depth"),
-        "intrinsics": ("tracking", "intrinsics"),
-        "cam_to_world": ("tracking", "cam_to_world"),
-        "rgb": ("tracking", "rgb"),
-        "segmentation": ("tracking", "segmentation"),  # optional: registration masks in simulation
-        "agent_pos": "agent_pos",  # optional: carried-object check
-        "chunk_index": "chunk_index",  # optional: 0 starts an episode (new reference)
-    }
-    default_out_keys = {
-        "offsets": ("ddp", "offsets"),
-        "visible": ("ddp", "object_visible"),
-        "carried": ("ddp", "object_carried"),
-    }
+    default_in_keys = tracking_in_keys(rgb=("tracking", "rgb"))  # segmentation: registration masks in simulation
 
     def __init__(self, config: FoundationPoseTrackerConfig, estimator_factory: EstimatorFactory | None = None):
         super().__init__()
@@ -302,7 +280,7 @@ class FoundationPoseTracker(KeyedModule):
         for k, s in enumerate(states):
             if s is None:
                 continue
-            near = near_gripper(s, ee, c.carried_radius)
+            near = s.near_gripper(ee, c.carried_radius)
             est = self._estimator(b, k)
             if masks is not None:
                 pose = est.register(K, rgb, depth, masks[k], c.register_iterations) if masks[k] is not None else None
@@ -314,7 +292,7 @@ class FoundationPoseTracker(KeyedModule):
                 position = self._position(world)
                 disp = position - self._position(s.ref)  # Delta p = p - p^exp
                 visible[k] = True
-            offsets[k], carried[k] = robot_aware_offset(s, disp, position, ee, near, c.carried_radius, c.min_offset)
+            offsets[k], carried[k] = s.robot_aware_offset(disp, position, ee, near, c.carried_radius, c.min_offset)
         return offsets, visible, carried
 
     def forward(self, td):
@@ -322,22 +300,21 @@ class FoundationPoseTracker(KeyedModule):
         if unbatched:
             td = td.unsqueeze(0)
         B = td.batch_size[0]
-        depth = _as_numpy(td.get(self.key("depth"))).astype(np.float32)
-        K = _as_numpy(td.get(self.key("intrinsics"))).astype(np.float64)
-        T = _as_numpy(td.get(self.key("cam_to_world"))).astype(np.float64)
+        depth = as_numpy(td.get(self.key("depth"))).astype(np.float32)
+        K = as_numpy(td.get(self.key("intrinsics"))).astype(np.float64)
+        T = as_numpy(td.get(self.key("cam_to_world"))).astype(np.float64)
         rgb = td.get(self.key("rgb"), None)
-        rgb = None if rgb is None else _as_numpy(rgb)
+        rgb = None if rgb is None else as_numpy(rgb)
         seg = td.get(self.key("segmentation"), None)
-        seg = None if seg is None else _as_numpy(seg)
-        pos = td.get(self.key("agent_pos"), None)
-        ee = None if pos is None else _as_numpy(pos).reshape(B, -1, pos.shape[-1])[:, -1][:, self.config.ee_dims]
+        seg = None if seg is None else as_numpy(seg)
+        ee = self._end_effector(td, B)
         chunk = td.get(self.key("chunk_index"), None)
         chunk = None if chunk is None else chunk.reshape(B).tolist()
 
         results = []
         for b in range(B):
             args = (depth[b], K[b], T[b], None if rgb is None else rgb[b], None if seg is None else seg[b],
-                    None if ee is None else ee[b].astype(np.float64))
+                    None if ee is None else ee[b])
             if b not in self.states or (chunk is not None and chunk[b] == 0):
                 self.states[b] = self._reference(b, *args)  # p^exp: the episode's first (ID) frame
                 n = self.num_objects
@@ -345,9 +322,4 @@ class FoundationPoseTracker(KeyedModule):
                 results.append((np.zeros((n, 3)), visible, np.zeros(n, dtype=bool)))
                 continue
             results.append(self._track_env(b, self.states[b], *args))
-        device = td.device if td.device is not None else torch.device("cpu")
-        offsets = np.stack([r[0] for r in results])
-        td.set(self.key("offsets"), torch.as_tensor(offsets, dtype=torch.float32, device=device))
-        td.set(self.key("visible"), torch.as_tensor(np.stack([r[1] for r in results]), device=device))
-        td.set(self.key("carried"), torch.as_tensor(np.stack([r[2] for r in results]), device=device))
-        return td.squeeze(0) if unbatched else td
+        return self._write(td, results, unbatched)

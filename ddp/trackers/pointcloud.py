@@ -44,11 +44,10 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-import torch
 
-from ddp.keys import KeyedModule
 from ddp.registry import register
 from ddp.trackers import geometry as geo
+from ddp.trackers.base import CarriedState, ObjectTracker, as_numpy
 
 
 @dataclass
@@ -108,75 +107,18 @@ class PointCloudTrackerConfig:
 
 
 @dataclass
-class _ObjectRef:
+class _ObjectRef(CarriedState):
+    """An object's reference cloud and, inherited, its carried-check state (``last``: its centroid's position)."""
+
     cloud: np.ndarray  # reference points (base frame, subsampled)
     centroid: np.ndarray  # their centroid
-    last: np.ndarray  # last known position of the reference centroid (association, carried check)
-    anchor: np.ndarray  # displacement treated as "not displaced" (moved by the robot)
     normals: np.ndarray | None = None  # of the reference cloud (point-to-plane ICP onto it)
     bottom: float | None = None  # its lowest point above the table at the reference (geometry)
-    carried: bool = False
-    grasp_disp: np.ndarray | None = None  # displacement when it came near the gripper
-    ee_rel: np.ndarray | None = None  # its position relative to the end-effector then
-    pred: np.ndarray | None = None  # where it is if it moves with the hand (while carried)
-    last_disp: np.ndarray = field(default_factory=lambda: np.zeros(3))  # last measured displacement
 
 
 @dataclass
 class _EnvRef:
     objects: list  # _ObjectRef or None (not seen on the reference frame)
-
-
-def near_gripper(obj, ee, carried_radius: float) -> bool:
-    """Whether the object may be in the gripper before this measurement.
-
-    True for an object already taken as carried (then ``obj.pred``, where it would be if it moves with
-    the hand, is updated) and for one whose last known position is within ``carried_radius`` of the
-    end-effector ``ee``.
-    """
-    if ee is None or carried_radius <= 0:
-        return False
-    if obj.carried:
-        obj.pred = ee + obj.ee_rel
-        return True
-    return float(np.linalg.norm(obj.last - ee)) <= carried_radius
-
-
-def robot_aware_offset(obj, disp, position, ee, near: bool, carried_radius: float,
-                       min_offset: float) -> tuple[np.ndarray, bool]:
-    """The reported offset of one object and whether the robot may be carrying it.
-
-    ``obj`` holds ``last`` (last measured position), ``anchor`` (the displacement that counts as
-    "not displaced": where the robot last put the object), ``carried``, ``grasp_disp``, ``ee_rel``
-    and ``last_disp``. ``disp`` / ``position``: the displacement from the episode's reference and the
-    position measured now (None: not measured); ``near``: :func:`near_gripper` before this
-    measurement.
-
-    A measured object is near the gripper when it lies within ``carried_radius`` of the
-    end-effector; an unmeasured one keeps its previous state (hidden in the hand, it stays carried).
-    An object near the gripper may be moving with the robot: its offset reads zero. When it is next
-    measured away from the gripper it is re-anchored where it is if it moved while near the gripper
-    (the robot put it down there); otherwise (the gripper only passed by) it reports its offset as
-    before. Offsets shorter than ``min_offset`` read zero.
-    """
-    zero = np.zeros(3)
-    if disp is not None:
-        obj.last_disp, obj.last = disp, position
-        near = ee is not None and carried_radius > 0 and float(np.linalg.norm(position - ee)) <= carried_radius
-    if near:
-        if not obj.carried:
-            obj.carried = True
-            obj.grasp_disp = np.array(obj.last_disp, dtype=np.float64)
-        obj.ee_rel = obj.last - ee if disp is not None or obj.ee_rel is None else obj.ee_rel
-        return zero, True
-    if disp is None:
-        return zero, False
-    if obj.carried:
-        obj.carried = False
-        if np.linalg.norm(disp - obj.grasp_disp) >= min_offset:
-            obj.anchor = disp  # moved by the robot: this is where it was put down
-    off = disp - obj.anchor
-    return (off if np.linalg.norm(off) >= min_offset else zero), False
 
 
 _SIZE_COST = 0.05  # m of association distance per e-fold of size mismatch
@@ -186,10 +128,6 @@ _BETTER_FIT = 0.7  # an ICP start less plausible than the previous one must reac
 def _extent(points: np.ndarray) -> float:
     """The largest side of the axis-aligned bounding box."""
     return float(np.max(points.max(0) - points.min(0)))
-
-
-def _as_numpy(x):
-    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
 class ObjectIsolator:
@@ -374,22 +312,8 @@ class ObjectIsolator:
 
 
 @register("tracker", "pointcloud", config=PointCloudTrackerConfig)
-class PointCloudTracker(KeyedModule):
+class PointCloudTracker(ObjectTracker):
     """Object displacement from depth: segmentation or table removal + clustering, centroid shift, ICP."""
-
-    default_in_keys = {
-        "depth": ("tracking", "depth"),
-        "intrinsics": ("tracking", "intrinsics"),
-        "cam_to_world": ("tracking", "cam_to_world"),
-        "segmentation": ("tracking", "segmentation"),  # optional
-        "agent_pos": "agent_pos",  # optional: carried-object check
-        "chunk_index": "chunk_index",  # optional: 0 starts an episode (new reference)
-    }
-    default_out_keys = {
-        "offsets": ("ddp", "offsets"),
-        "visible": ("ddp", "object_visible"),
-        "carried": ("ddp", "object_carried"),
-    }
 
     def __init__(self, config: PointCloudTrackerConfig):
         super().__init__()
@@ -482,7 +406,7 @@ class PointCloudTracker(KeyedModule):
         visible = np.zeros(n, dtype=bool)
         carried = np.zeros(n, dtype=bool)
         objs = ref.objects
-        near = [o is not None and near_gripper(o, ee, c.carried_radius) for o in objs]
+        near = [o is not None and o.near_gripper(ee, c.carried_radius) for o in objs]
         # where to look: around the last known and the reference position, for a carried object near
         # where the hand has taken it or below it at the height it was picked from (put down there);
         # an object not in the hand rests on something (no floating clusters)
@@ -500,8 +424,8 @@ class PointCloudTracker(KeyedModule):
             disp = None if f is None else self._measure(obj, f[0], T[:3, 3])
             visible[k] = disp is not None
             position = None if disp is None else obj.centroid + disp
-            offsets[k], carried[k] = robot_aware_offset(obj, disp, position, ee, near[k], c.carried_radius,
-                                                        c.min_offset)
+            offsets[k], carried[k] = obj.robot_aware_offset(disp, position, ee, near[k], c.carried_radius,
+                                                            c.min_offset)
         return offsets, visible, carried
 
     # ------------------------------------------------------------------ forward
@@ -510,11 +434,11 @@ class PointCloudTracker(KeyedModule):
         if unbatched:
             td = td.unsqueeze(0)
         B = td.batch_size[0]
-        depth = _as_numpy(td.get(self.key("depth")))
-        K = _as_numpy(td.get(self.key("intrinsics")))
-        T = _as_numpy(td.get(self.key("cam_to_world")))
+        depth = as_numpy(td.get(self.key("depth")))
+        K = as_numpy(td.get(self.key("intrinsics")))
+        T = as_numpy(td.get(self.key("cam_to_world")))
         seg = td.get(self.key("segmentation"), None)
-        seg = None if seg is None else _as_numpy(seg)
+        seg = None if seg is None else as_numpy(seg)
         ee = self._end_effector(td, B)
         chunk = td.get(self.key("chunk_index"), None)
         chunk = None if chunk is None else chunk.reshape(B).tolist()
@@ -529,16 +453,4 @@ class PointCloudTracker(KeyedModule):
         sizes = {len(r[0]) for r in results}
         if len(sizes) != 1:
             raise ValueError(f"pointcloud tracker: environments disagree on the number of objects ({sorted(sizes)})")
-        device = td.device if td.device is not None else torch.device("cpu")
-        offsets = np.stack([r[0] for r in results])
-        td.set(self.key("offsets"), torch.as_tensor(offsets, dtype=torch.float32, device=device))
-        td.set(self.key("visible"), torch.as_tensor(np.stack([r[1] for r in results]), device=device))
-        td.set(self.key("carried"), torch.as_tensor(np.stack([r[2] for r in results]), device=device))
-        return td.squeeze(0) if unbatched else td
-
-    def _end_effector(self, td, B):
-        pos = td.get(self.key("agent_pos"), None)
-        if pos is None:
-            return None
-        pos = _as_numpy(pos).reshape(B, -1, pos.shape[-1])[:, -1]  # stacked [B, M, D]: the latest step
-        return pos[:, self.config.ee_dims].astype(np.float64)
+        return self._write(td, results, unbatched)
