@@ -200,8 +200,8 @@ def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1,
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
     res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=dict(exp.recipe.eval.env), num_envs=num_envs,
                            desc="calibrate tau", progress=progress, parallel=parallel)
-    values = [v for r in res for v in r.get("discrepancy", []) if not math.isnan(v)]
-    return detector.calibrate(values)
+    pairs = [(v, c) for r in res for c, v in enumerate(r.get("discrepancy", [])) if not math.isnan(v)]
+    return detector.calibrate([v for v, _ in pairs], chunks=[c for _, c in pairs])
 
 
 def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: str | Path | None = None,
@@ -236,16 +236,17 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
 
     exp.model.to(resolve_device(cfg.device))  # the envs stay on the CPU; the controller moves tensors
     report = {"recipe": exp.recipe.name, "episodes": episodes, "seed": seed, "protocols": {}}
-    tau = None
+    calibration = None  # thresholds calibrated once, on ID rollouts, for every protocol that needs them
     for name in protocols:
         proto = PROTOCOLS[name]
         overrides = _env_overrides(exp, proto, cfg.max_steps)
         ctrl = exp.make_controller(detector=proto.detector, imagine=proto.imagine, tracker=proto.tracker)
         if hasattr(ctrl.detector, "calibrate") and ctrl.detector.tau is None:
-            if tau is None:
-                tau = calibrate_tau(exp, ctrl.detector, episodes=cfg.calibration_episodes, seed=seed + 100_000,
-                                    num_envs=num_envs, progress=progress, parallel=parallel)
-            ctrl.detector.tau = tau
+            if calibration is None:
+                calibrate_tau(exp, ctrl.detector, episodes=cfg.calibration_episodes, seed=seed + 100_000,
+                              num_envs=num_envs, progress=progress, parallel=parallel)
+                calibration = ctrl.detector.calibration()
+            ctrl.detector.load_calibration(calibration)
         vid = None
         if video:
             vid = VideoSettings(str(out_dir / "videos" / name), episodes=cfg.video_episodes, size=cfg.video_size,
@@ -260,6 +261,7 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
             "episodes": len(res),
             "seconds": time.perf_counter() - t0,
             "tau": getattr(ctrl.detector, "tau", None),
+            "tau_per_chunk": getattr(ctrl.detector, "tau_per_chunk", None),
             "per_episode": res,
         }
         if vid is not None:

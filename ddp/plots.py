@@ -33,15 +33,19 @@ def plot_success(report: dict, path: Path) -> Path:
     return path
 
 
-def plot_discrepancy(episode: dict, tau: float | None, title: str, path: Path) -> Path:
-    """D_R-I per control cycle, the threshold tau, and OOD periods shaded."""
+def plot_discrepancy(episode: dict, tau: float | None, title: str, path: Path,
+                     tau_per_chunk: list[float] | None = None) -> Path:
+    """D_R-I per control cycle, the threshold tau (a step curve when calibrated per chunk), OOD periods shaded."""
     plt = _pyplot()
     d = episode["discrepancy"]
     mode = episode.get("mode", [0] * len(d))
     xs = list(range(len(d)))
     fig, ax = plt.subplots(figsize=(6, 2.6))
     ax.plot(xs, [float("nan") if math.isnan(v) else v for v in d], marker="o", ms=3, lw=1.2, label="$D_{R-I}$")
-    if tau is not None:
+    if tau_per_chunk:
+        per = [tau_per_chunk[x] if x < len(tau_per_chunk) else tau for x in xs]
+        ax.step(xs, per, where="mid", color="crimson", ls="--", lw=1, label=r"$\tau_{diff}$ per chunk")
+    elif tau is not None:
         ax.axhline(tau, color="crimson", ls="--", lw=1, label=r"$\tau_{diff}$")
     for x, m in zip(xs, mode):
         if m:
@@ -67,5 +71,5 @@ def plot_report(report: dict, out_dir: Path) -> list[Path]:
         eps = [e for e in res["per_episode"] if any(not math.isnan(v) for v in e.get("discrepancy", []))]
         if eps and name in ("ood_ddp", "occlusion", "ood_tracking"):
             paths.append(plot_discrepancy(eps[0], res.get("tau"), f"{report['recipe']} / {name}, seed {eps[0]['seed']}",
-                                          out_dir / f"discrepancy_{name}.png"))
+                                          out_dir / f"discrepancy_{name}.png", res.get("tau_per_chunk")))
     return paths

@@ -101,6 +101,49 @@ def test_discrepancy_detector_threshold_and_calibration(exp):
         rollout(exp, exp.make_controller(detector={"name": "discrepancy"}), chunks=3)
 
 
+def test_discrepancy_per_chunk_thresholds():
+    from tensordict import TensorDict
+
+    from ddp.detectors.discrepancy import DiscrepancyConfig, DiscrepancyDetector
+
+    det = DiscrepancyDetector(DiscrepancyConfig(tau=None, per_chunk=True, window=1, percentile=100, margin=2.0))
+    # ID forecast error: small at chunks 1-2, large around a contact at chunk 5
+    values = [0.01, 0.02, 0.01, 0.02, 0.01, 0.5, 0.01]
+    chunks = [1, 2, 1, 2, 3, 5, 6]
+    tau = det.calibrate(values, chunks=chunks)
+    assert tau == pytest.approx(1.0)  # the global tau: margin x max
+    # chunk c pools chunks c-1..c+1: chunk 0 has only chunk 1's values, chunk 4 has none but chunk 5's
+    assert det.tau_per_chunk == pytest.approx([0.02, 0.04, 0.04, 0.04, 1.0, 1.0, 1.0])
+    td = TensorDict({("ddp", "discrepancy"): torch.tensor([0.03, 0.03, 0.03, 0.6]),
+                     "chunk_index": torch.tensor([[1], [2], [5], [40]])}, batch_size=[4])
+    # each value against its own chunk's tau: 0.04 at chunks 1 and 2, 1.0 at 5, the global 1.0 past the table
+    assert det(td)["ddp", "ood"].tolist() == [False, False, False, False]
+    td["ddp", "discrepancy"] = torch.tensor([0.05, 0.05, 0.05, 1.5])
+    assert det(td)["ddp", "ood"].tolist() == [True, True, False, True]  # past the table: the global tau
+    other = DiscrepancyDetector(DiscrepancyConfig(tau=None, per_chunk=True))
+    other.load_calibration(det.calibration())
+    assert other(td)["ddp", "ood"].tolist() == [True, True, False, True]
+    with pytest.raises(ValueError, match="chunk index"):
+        det.calibrate(values)
+    with pytest.raises(ValueError, match="set tau to null"):
+        DiscrepancyConfig(tau=0.1, per_chunk=True)
+
+
+def test_per_chunk_calibration_reaches_every_protocol(exp, tmp_path):
+    from ddp.schema import resolve_part
+
+    exp.parts["controller.detector"] = resolve_part(
+        "detector", {"name": "discrepancy", "tau": None, "per_chunk": True}, key="controller.detector", source="<test>"
+    )
+    exp.recipe.eval.calibration_episodes = 1
+    rep = exp.evaluate(["ood_ddp", "occlusion"], episodes=1, output_dir=tmp_path, progress=False)
+    first, second = rep["protocols"]["ood_ddp"], rep["protocols"]["occlusion"]
+    assert first["tau_per_chunk"] and first["tau_per_chunk"] == second["tau_per_chunk"]
+    assert first["tau"] == second["tau"] and all(t > 0 for t in first["tau_per_chunk"])
+    assert len(first["tau_per_chunk"]) == first["per_episode"][0]["chunks"]  # one per chunk index seen
+    assert (tmp_path / "discrepancy_ood_ddp.png").exists()
+
+
 def test_discrepancy_needs_a_world_model(tiny_recipe):
     tiny_recipe["world_model"]["enabled"] = False
     e = build(tiny_recipe)
