@@ -150,6 +150,9 @@ def plot_separability(rep: dict, path) -> None:
     for i, d in enumerate(rep["discrepancy"]["ood_base"]):
         ax.plot(range(len(d)), d, color="tab:red", lw=0.8, alpha=0.7, label="displaced" if i == 0 else None)
     ax.axhline(rep["tau"], color="black", ls="--", lw=1, label="tau")
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("chunk")
     ax.set_ylabel("D_R-I")
     ax.set_yscale("log")
