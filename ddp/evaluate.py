@@ -193,15 +193,23 @@ def _summarise(traj, env_index: int, seed: int) -> dict:
     return out
 
 
-def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
-                  parallel: bool = False) -> float:
-    """Set a discrepancy detector's tau from D_R-I observed in ID rollouts of the base policy."""
+def calibration_values(exp, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
+                       parallel: bool = False) -> tuple[list[float], list[int]]:
+    """D_R-I values observed in ID rollouts of the base policy, and the chunk index of each."""
     # the base policy, with the world model's forecast made every cycle so that D_R-I is measured
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
     res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=dict(exp.recipe.eval.env), num_envs=num_envs,
                            desc="calibrate tau", progress=progress, parallel=parallel)
     pairs = [(v, c) for r in res for c, v in enumerate(r.get("discrepancy", [])) if not math.isnan(v)]
-    return detector.calibrate([v for v, _ in pairs], chunks=[c for _, c in pairs])
+    return [v for v, _ in pairs], [c for _, c in pairs]
+
+
+def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
+                  parallel: bool = False) -> float:
+    """Set a discrepancy detector's tau (and per-chunk thresholds) from D_R-I in ID rollouts; return tau."""
+    values, chunks = calibration_values(exp, episodes=episodes, seed=seed, num_envs=num_envs, progress=progress,
+                                        parallel=parallel)
+    return detector.calibrate(values, chunks=chunks)
 
 
 def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: str | Path | None = None,

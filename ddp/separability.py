@@ -9,7 +9,9 @@ layouts with the env's displacements (the ``ood_base`` protocol). Per chunk
 it reports the ID and displaced D_R-I and the AUROC of displaced against ID
 (1.0: a threshold at that chunk separates them all; 0.5: chance), and per
 displaced episode the first chunk whose D_R-I exceeds ``tau`` (the recipe's,
-or calibrated as ``ddp eval`` does on separate ID seeds).
+or calibrated as ``ddp eval`` does on separate ID seeds). A calibrated report
+also gives the detection and false-alarm chunks under per-chunk thresholds
+(``controller.detector.per_chunk: true``) from the same calibration rollouts.
 
 ``python scripts/discrepancy_report.py --checkpoint runs/<name>/last.pt``
 prints the table and draws the ID band against the displaced episodes.
@@ -36,10 +38,13 @@ def auroc(negatives, positives) -> float:
     return float(greater + 0.5 * ties)
 
 
-def first_above(values, tau: float) -> int | None:
-    """Index of the first value above ``tau`` (NaNs never are), or None."""
+def first_above(values, tau) -> int | None:
+    """Index of the first value above ``tau`` (a number, or one threshold per index, the last repeated;
+    NaNs are never above), or None."""
+    taus = list(tau) if isinstance(tau, (list, tuple)) else None
     for i, v in enumerate(values):
-        if not math.isnan(v) and v > tau:
+        t = tau if taus is None else taus[min(i, len(taus) - 1)]
+        if not math.isnan(v) and v > t:
             return i
     return None
 
@@ -58,7 +63,7 @@ def separability(exp, *, episodes: int = 10, seed: int | None = None, tau: float
     when that is null too, calibrates one from ``eval.calibration_episodes`` ID episodes on seeds
     ``seed + 100000 ...`` (as ``ddp eval`` does).
     """
-    from ddp.evaluate import PROTOCOLS, _env_overrides, calibrate_tau, rollout_episodes
+    from ddp.evaluate import PROTOCOLS, _env_overrides, calibration_values, rollout_episodes
 
     if not exp.model.has_world_model:
         raise ValueError(f"{exp.recipe.name}: D_R-I needs a world model (world_model.enabled is false)")
@@ -70,14 +75,19 @@ def separability(exp, *, episodes: int = 10, seed: int | None = None, tau: float
         runs[name] = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed,
                                       overrides=_env_overrides(exp, PROTOCOLS[name], cfg.max_steps),
                                       desc=f"D_R-I {name}", progress=progress)
-    calibrated = False
+    calibrated, per_chunk = False, None
     if tau is None:
         section = exp.recipe.controller.detector
         tau = section.get("tau") if section.get("name") == "discrepancy" else None
-    if tau is None:
-        detector = exp.make_controller(detector={"name": "discrepancy", "tau": None}, tracker=False).detector
-        tau = calibrate_tau(exp, detector, episodes=cfg.calibration_episodes, seed=seed + 100_000,
-                            progress=progress)
+    if tau is None:  # calibrated as ddp eval does; per-chunk thresholds from the same rollouts
+        values, chunks = calibration_values(exp, episodes=cfg.calibration_episodes, seed=seed + 100_000,
+                                            progress=progress)
+        single = exp.make_controller(detector={"name": "discrepancy", "tau": None}, tracker=False).detector
+        tau = single.calibrate(values, chunks=chunks)
+        detector = exp.make_controller(detector={"name": "discrepancy", "tau": None, "per_chunk": True},
+                                       tracker=False).detector
+        detector.calibrate(values, chunks=chunks)
+        per_chunk = [*detector.tau_per_chunk, detector.tau]  # past the table: the global tau
         calibrated = True
     id_chunks, ood_chunks = _per_chunk(runs["id"]), _per_chunk(runs["ood_base"])
     rows = []
@@ -97,6 +107,9 @@ def separability(exp, *, episodes: int = 10, seed: int | None = None, tau: float
         })
     detections = [first_above(r["discrepancy"], tau) for r in runs["ood_base"]]
     false_alarms = [first_above(r["discrepancy"], tau) for r in runs["id"]]
+    if per_chunk is not None:
+        detections_pc = [first_above(r["discrepancy"], per_chunk) for r in runs["ood_base"]]
+        false_alarms_pc = [first_above(r["discrepancy"], per_chunk) for r in runs["id"]]
     return {
         "recipe": exp.recipe.name,
         "episodes": episodes,
@@ -106,6 +119,9 @@ def separability(exp, *, episodes: int = 10, seed: int | None = None, tau: float
         "chunks": rows,
         "detection_chunk": detections,
         "false_alarm_chunk": false_alarms,
+        "tau_per_chunk": per_chunk,
+        "detection_chunk_per_chunk": detections_pc if per_chunk is not None else None,
+        "false_alarm_chunk_per_chunk": false_alarms_pc if per_chunk is not None else None,
         "success": {name: [bool(r["success"]) for r in res] for name, res in runs.items()},
         "discrepancy": {name: [r["discrepancy"] for r in res] for name, res in runs.items()},
     }
@@ -129,6 +145,12 @@ def format_report(rep: dict) -> str:
     lines.append(f"displaced episodes above tau: {len(det)}/{len(rep['detection_chunk'])}, first at chunks "
                  f"{rep['detection_chunk']}")
     lines.append(f"ID episodes above tau (false alarms): {len(fa)}/{len(rep['false_alarm_chunk'])}")
+    if rep.get("tau_per_chunk") is not None:
+        det = [d for d in rep["detection_chunk_per_chunk"] if d is not None]
+        fa = [d for d in rep["false_alarm_chunk_per_chunk"] if d is not None]
+        lines.append(f"per-chunk thresholds (controller.detector.per_chunk: true): displaced above {len(det)}/"
+                     f"{len(rep['detection_chunk_per_chunk'])}, first at chunks {rep['detection_chunk_per_chunk']}; "
+                     f"false alarms {len(fa)}/{len(rep['false_alarm_chunk_per_chunk'])}")
     return "\n".join(lines)
 
 
@@ -150,6 +172,9 @@ def plot_separability(rep: dict, path) -> None:
     for i, d in enumerate(rep["discrepancy"]["ood_base"]):
         ax.plot(range(len(d)), d, color="tab:red", lw=0.8, alpha=0.7, label="displaced" if i == 0 else None)
     ax.axhline(rep["tau"], color="black", ls="--", lw=1, label="tau")
+    if rep.get("tau_per_chunk"):
+        taus = rep["tau_per_chunk"]
+        ax.step(range(len(taus)), taus, where="mid", color="tab:purple", ls=":", lw=1.2, label="tau per chunk")
     from matplotlib.ticker import MaxNLocator
 
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))

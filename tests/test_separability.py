@@ -27,6 +27,10 @@ def test_auroc_counts_pairs_and_ties():
 def test_first_above_skips_nan():
     assert first_above([float("nan"), 0.1, 0.5, 0.9], 0.4) == 2
     assert first_above([float("nan"), 0.1], 0.4) is None
+    # one threshold per index, the last one repeated past the list
+    assert first_above([0.3, 0.3, 0.3], [0.5, 0.2]) == 1
+    assert first_above([0.3, 0.1, 0.6], [0.5, 0.5]) == 2
+    assert first_above([0.3, 0.1, 0.4], [0.5, 0.5]) is None
 
 
 def test_report_on_the_synthetic_env(tiny_recipe, tmp_path):
@@ -52,3 +56,8 @@ def test_report_on_the_synthetic_env(tiny_recipe, tmp_path):
     exp.recipe.eval.calibration_episodes = 1
     rep = separability(exp, episodes=1, progress=False)
     assert rep["tau_calibrated"] and rep["tau"] > 0
+    per = rep["tau_per_chunk"]
+    assert per[-1] == rep["tau"] and all(t > 0 for t in per)
+    assert rep["detection_chunk_per_chunk"] == [first_above(d, per) for d in rep["discrepancy"]["ood_base"]]
+    assert "per-chunk thresholds" in format_report(rep)
+    plot_separability(rep, tmp_path / "s2.png")
