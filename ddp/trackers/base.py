@@ -109,6 +109,22 @@ class CarriedState:
         return (off if np.linalg.norm(off) >= min_offset else zero), False
 
 
+@dataclass
+class TrackerInputs:
+    """One call's inputs, batched (``td`` with a leading env dim; ``unbatched``: it had none)."""
+
+    td: object
+    unbatched: bool
+    B: int
+    depth: np.ndarray  # [B, H, W] metres
+    K: np.ndarray  # [B, 3, 3] intrinsics
+    T: np.ndarray  # [B, 4, 4] camera-to-world
+    segmentation: np.ndarray | None  # [B, H, W] object index per pixel
+    images: dict  # further camera inputs by name (None when absent)
+    ee: np.ndarray | None  # [B, 3] latest end-effector position
+    chunk: list | None  # chunk index per env (0 starts an episode)
+
+
 class ObjectTracker(KeyedModule):
     """Base of the depth-camera trackers: their keys, the end-effector input and the output writing.
 
@@ -123,6 +139,24 @@ class ObjectTracker(KeyedModule):
         "visible": ("ddp", "object_visible"),
         "carried": ("ddp", "object_carried"),
     }
+
+    def _read_inputs(self, td, *images: str) -> "TrackerInputs":
+        """The batched tracking inputs as numpy arrays (``images``: further camera inputs, e.g. ``"rgb"``)."""
+        unbatched = td.batch_dims == 0
+        if unbatched:
+            td = td.unsqueeze(0)
+        B = td.batch_size[0]
+        optional = {}
+        for name in (*images, "segmentation"):
+            value = td.get(self.key(name), None)
+            optional[name] = None if value is None else as_numpy(value)
+        chunk = td.get(self.key("chunk_index"), None)
+        return TrackerInputs(
+            td=td, unbatched=unbatched, B=B, depth=as_numpy(td.get(self.key("depth"))),
+            K=as_numpy(td.get(self.key("intrinsics"))), T=as_numpy(td.get(self.key("cam_to_world"))),
+            segmentation=optional.pop("segmentation"), images=optional, ee=self._end_effector(td, B),
+            chunk=None if chunk is None else chunk.reshape(B).tolist(),
+        )  # fmt: skip
 
     def _end_effector(self, td, B: int) -> np.ndarray | None:
         """The latest end-effector position per environment [B, 3] (float64), or None without ``agent_pos``."""

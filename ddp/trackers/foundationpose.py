@@ -47,7 +47,7 @@ import torch
 from ddp.errors import PluginError
 from ddp.registry import register
 from ddp.trackers import geometry as geo
-from ddp.trackers.base import CarriedState, ObjectTracker, as_numpy, tracking_in_keys
+from ddp.trackers.base import CarriedState, ObjectTracker, tracking_in_keys
 from ddp.trackers.pointcloud import IsolationConfig, ObjectIsolator
 
 #: FoundationPose's weight folders (refiner, scorer), as its predictors hard-code them
@@ -296,20 +296,9 @@ class FoundationPoseTracker(ObjectTracker):
         return offsets, visible, carried
 
     def forward(self, td):
-        unbatched = td.batch_dims == 0
-        if unbatched:
-            td = td.unsqueeze(0)
-        B = td.batch_size[0]
-        depth = as_numpy(td.get(self.key("depth"))).astype(np.float32)
-        K = as_numpy(td.get(self.key("intrinsics"))).astype(np.float64)
-        T = as_numpy(td.get(self.key("cam_to_world"))).astype(np.float64)
-        rgb = td.get(self.key("rgb"), None)
-        rgb = None if rgb is None else as_numpy(rgb)
-        seg = td.get(self.key("segmentation"), None)
-        seg = None if seg is None else as_numpy(seg)
-        ee = self._end_effector(td, B)
-        chunk = td.get(self.key("chunk_index"), None)
-        chunk = None if chunk is None else chunk.reshape(B).tolist()
+        x = self._read_inputs(td, "rgb")
+        td, B, rgb, seg, ee, chunk = x.td, x.B, x.images["rgb"], x.segmentation, x.ee, x.chunk
+        depth, K, T = x.depth.astype(np.float32), x.K.astype(np.float64), x.T.astype(np.float64)
 
         results = []
         for b in range(B):
@@ -322,4 +311,4 @@ class FoundationPoseTracker(ObjectTracker):
                 results.append((np.zeros((n, 3)), visible, np.zeros(n, dtype=bool)))
                 continue
             results.append(self._track_env(b, self.states[b], *args))
-        return self._write(td, results, unbatched)
+        return self._write(td, results, x.unbatched)

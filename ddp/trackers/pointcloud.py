@@ -47,7 +47,7 @@ import numpy as np
 
 from ddp.registry import register
 from ddp.trackers import geometry as geo
-from ddp.trackers.base import CarriedState, ObjectTracker, as_numpy
+from ddp.trackers.base import CarriedState, ObjectTracker
 
 
 @dataclass
@@ -430,18 +430,8 @@ class PointCloudTracker(ObjectTracker):
 
     # ------------------------------------------------------------------ forward
     def forward(self, td):
-        unbatched = td.batch_dims == 0
-        if unbatched:
-            td = td.unsqueeze(0)
-        B = td.batch_size[0]
-        depth = as_numpy(td.get(self.key("depth")))
-        K = as_numpy(td.get(self.key("intrinsics")))
-        T = as_numpy(td.get(self.key("cam_to_world")))
-        seg = td.get(self.key("segmentation"), None)
-        seg = None if seg is None else as_numpy(seg)
-        ee = self._end_effector(td, B)
-        chunk = td.get(self.key("chunk_index"), None)
-        chunk = None if chunk is None else chunk.reshape(B).tolist()
+        x = self._read_inputs(td)
+        td, B, depth, K, T, seg, ee, chunk = x.td, x.B, x.depth, x.K, x.T, x.segmentation, x.ee, x.chunk
 
         results = []
         for b in range(B):
@@ -453,4 +443,4 @@ class PointCloudTracker(ObjectTracker):
         sizes = {len(r[0]) for r in results}
         if len(sizes) != 1:
             raise ValueError(f"pointcloud tracker: environments disagree on the number of objects ({sorted(sizes)})")
-        return self._write(td, results, unbatched)
+        return self._write(td, results, x.unbatched)
