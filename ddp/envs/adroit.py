@@ -70,6 +70,7 @@ from ddp.envs.adroit_tasks import ADROIT_TASKS, CROP_MAX, CROP_MIN, HAND_JOINTS,
 from ddp.envs.cloud_state import CloudStateMixin  # noqa: E402
 from ddp.envs.disturbances import OCCLUSION_MODES, Occlusion  # noqa: E402
 from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
+from ddp.envs.seeding import EpisodeSeeds  # noqa: E402
 from ddp.errors import DDPError, suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
 
@@ -190,7 +191,7 @@ class AdroitEnvConfig:
 
 
 @register("env", "adroit", config=AdroitEnvConfig)
-class AdroitEnv(CloudStateMixin, EnvBase):
+class AdroitEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
     """An Adroit hand task (door, hammer, pen) with DP3 point clouds and optional occlusion."""
 
     def __init__(self, config: AdroitEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
@@ -217,8 +218,7 @@ class AdroitEnv(CloudStateMixin, EnvBase):
 
         self._init_cloud()
 
-        self._next_seed = 0 if seed is None else int(seed)
-        self._seed = self._next_seed
+        self._init_seeds(seed)
         self._steps = 0
         self._rng = np.random.default_rng(0)
         self._state = np.zeros(self.task.state_dim)
@@ -244,14 +244,8 @@ class AdroitEnv(CloudStateMixin, EnvBase):
         self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), device=dev)
 
     # -------------------------------------------------------------- TorchRL API
-    def _set_seed(self, seed: int | None) -> None:
-        if seed is not None:
-            self._next_seed = int(seed)
-
     def _reset(self, tensordict: TensorDictBase | None = None, seed: int | None = None, **kwargs) -> TensorDictBase:
-        seed = self._next_seed if seed is None else int(seed)
-        self._next_seed = seed + 1
-        self._seed = seed
+        seed = self._episode_seed(seed)
         # gymnasium seeds must be non-negative; keep distinct seeds distinct
         state, _ = self.sim.reset(seed=seed if seed >= 0 else 2**31 + abs(seed))
         self._state = state

@@ -83,6 +83,7 @@ from ddp.envs.cloud_state import CloudStateMixin  # noqa: E402
 from ddp.envs.disturbances import OCCLUSION_MODES, Displacement, Occlusion  # noqa: E402
 from ddp.envs.metaworld_tasks import METAWORLD_V3_TASKS, PAPER_TASKS, MetaWorldTask, env_name  # noqa: E402
 from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
+from ddp.envs.seeding import EpisodeSeeds  # noqa: E402
 from ddp.errors import suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
 
@@ -231,7 +232,7 @@ class MetaWorldEnvConfig:
 
 
 @register("env", "metaworld", config=MetaWorldEnvConfig)
-class MetaWorldEnv(CloudStateMixin, EnvBase):
+class MetaWorldEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
     """A MetaWorld v3 task with DP3 point clouds and the paper's OOD disturbances."""
 
     def __init__(self, config: MetaWorldEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
@@ -266,7 +267,7 @@ class MetaWorldEnv(CloudStateMixin, EnvBase):
         self._renderer = SceneRenderer(model)  # depth for clouds, colour for videos (lazy)
         self._init_cloud()
 
-        self._next_seed = 0 if seed is None else int(seed)
+        self._init_seeds(seed)
         self._steps = 0
         self._task_index = cfg.task_indices[0]
         self._rng = np.random.default_rng(0)
@@ -300,14 +301,9 @@ class MetaWorldEnv(CloudStateMixin, EnvBase):
         self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), device=dev)
 
     # -------------------------------------------------------------- TorchRL API
-    def _set_seed(self, seed: int | None) -> None:
-        if seed is not None:
-            self._next_seed = int(seed)
-
     def _reset(self, tensordict: TensorDictBase | None = None, seed: int | None = None, **kwargs) -> TensorDictBase:
         cfg = self.config
-        seed = self._next_seed if seed is None else int(seed)
-        self._next_seed = seed + 1
+        seed = self._episode_seed(seed)
         start, stop = cfg.task_indices
         self._task_index = start + seed % (stop - start)
         self.sim.set_task(self._train_tasks[self._task_index])

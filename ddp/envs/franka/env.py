@@ -86,6 +86,7 @@ from ddp.envs.franka.control import ACTION_DIM, AGENT_POS_DIM, FrankaControl, ag
 from ddp.envs.franka.pointcloud import FrameToCloud  # noqa: E402
 from ddp.envs.franka.tasks import TASKS, FrankaTask  # noqa: E402
 from ddp.envs.franka.tasks.base import CameraSpec  # noqa: E402
+from ddp.envs.seeding import EpisodeSeeds  # noqa: E402
 from ddp.errors import suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
 
@@ -299,7 +300,7 @@ def make_sim_backend(config: FrankaEnvConfig):
 
 
 @register("env", "franka", config=FrankaEnvConfig)
-class FrankaEnv(EnvBase):
+class FrankaEnv(EpisodeSeeds, EnvBase):
     """Franka Panda tasks (stack, pour, press) with point clouds and the paper's OOD disturbances.
 
     ``backend``: an already built :class:`FrankaBackend` to use instead of building one from the
@@ -330,8 +331,7 @@ class FrankaEnv(EnvBase):
         lo, hi = cfg.crop_box
         self._cloud_fn = FrameToCloud(cfg.num_points, cfg.presample, lo, hi)
         k = len(self._task.object_names)
-        self._next_seed = 0 if seed is None else int(seed)
-        self._seed = 0
+        self._init_seeds(seed)
         self._steps = 0
         self._rng = np.random.default_rng(0)
         self._cloud = np.zeros((cfg.num_points, 3), dtype=np.float32)
@@ -373,14 +373,8 @@ class FrankaEnv(EnvBase):
         self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), device=dev)
 
     # -------------------------------------------------------------- TorchRL API
-    def _set_seed(self, seed: int | None) -> None:
-        if seed is not None:
-            self._next_seed = int(seed)
-
     def _reset(self, tensordict: TensorDictBase | None = None, seed: int | None = None, **kwargs) -> TensorDictBase:
-        seed = self._next_seed if seed is None else int(seed)
-        self._next_seed = seed + 1
-        self._seed = seed
+        seed = self._episode_seed(seed)
         layout = self._task.sample_layout(np.random.default_rng([abs(seed), 0]))
         self._rng = np.random.default_rng([abs(seed), 1])
         self.backend.reset(object_positions=layout, home=True)
