@@ -48,3 +48,9 @@ def test_recipe_with_set_prints_resolved_yaml(capsys):
 def test_console_script_entry_point_runs():
     out = subprocess.run([sys.executable, "-m", "ddp.cli", "list", "encoder"], capture_output=True, text=True, check=True)
     assert "dp3" in out.stdout
+
+
+def test_python_dash_m_runs_the_cli():
+    out = subprocess.run([sys.executable, "-m", "ddp", "list", "scheduler"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "ddim" in out.stdout and "consistency_flow" in out.stdout
