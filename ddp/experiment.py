@@ -102,6 +102,14 @@ class Experiment:
         from ddp.schema import resolve_part
 
         c = self.recipe.controller
+        env_part = self.parts.get("env")
+        hold = getattr(env_part.plugin.factory, "action_hold", None) if env_part is not None else None
+        if c.on_nonfinite == "hold" and hold is None:
+            from ddp.errors import RecipeError
+
+            what = f"env '{env_part.plugin.name}' declares no action_hold" if env_part else "the recipe has no env"
+            raise RecipeError(f"'hold' needs to know how the env holds still, but {what}", source=self.source,
+                              key="controller.on_nonfinite")
         det_part = self.parts["controller.detector"]
         if detector is not None:
             det_part = resolve_part("detector", detector, key="controller.detector", source="<protocol>")
@@ -120,6 +128,9 @@ class Experiment:
             track=c.track if track is None else track,
             forecast_every_cycle=c.forecast_every_cycle if forecast_every_cycle is None else forecast_every_cycle,
             seed=self.recipe.seed if seed is None else seed,
+            on_nonfinite=c.on_nonfinite,
+            hold=hold,
+            num_points=self.recipe.task.num_points,
         )
 
     def evaluate(self, protocols=None, **kwargs):

@@ -11,6 +11,13 @@ It writes ``action`` [B, N, A] (the chunk to execute), ``ee_shift`` [B, 3]
 diagnostics under ``"ddp"``: ``mode`` (0 ID, 1 OOD), ``imagined`` (the
 policy acted from imagined latents), ``discrepancy`` (D_R-I, NaN before the
 first prediction), ``subtask``.
+
+Nothing non-finite leaves it: observations are validated at the boundary
+(``ddp.safety.check_observation``); an environment whose observation or latents
+are not finite counts as OOD and acts from imagination when a forecast exists;
+otherwise, or if the sampled actions are not finite, ``on_nonfinite`` decides:
+``"raise"`` (a one-line :class:`~ddp.safety.NonFiniteError`) or ``"hold"`` (the
+env's hold action: zero motion, gripper command unchanged; ``("ddp", "held")``).
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ import torch
 from tensordict import TensorDictBase
 
 from ddp.keys import KeyedModule
+from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite_parameter
 
 MIN_OFFSET = 1e-6  # metres: smaller tracked offsets mean "did not move"
 
@@ -49,6 +57,7 @@ class EnvState:
     subtask: int = 0
     subtask_start: int = 0
     done_subtasks: list = field(default_factory=list)
+    last_action: torch.Tensor | None = None  # the last finite action emitted (what "hold" repeats)
 
 
 class DDPController(KeyedModule):
@@ -62,6 +71,7 @@ class DDPController(KeyedModule):
         "imagined": ("ddp", "imagined"),
         "discrepancy": ("ddp", "discrepancy"),
         "subtask": ("ddp", "subtask"),
+        "held": ("ddp", "held"),
     }
 
     def __init__(
@@ -76,8 +86,16 @@ class DDPController(KeyedModule):
         track: bool = True,
         forecast_every_cycle: bool = False,
         seed: int = 0,
+        on_nonfinite: str = "raise",
+        hold: HoldSpec | None = None,
+        num_points: int | None = None,
     ):
         super().__init__()
+        if on_nonfinite not in ("raise", "hold"):
+            raise ValueError(f"on_nonfinite must be 'raise' or 'hold'; got {on_nonfinite!r}")
+        bad = first_nonfinite_parameter(model)
+        if bad is not None:
+            raise NonFiniteError(f"the model's '{bad}' holds NaN or inf: it cannot drive a robot")
         if getattr(detector, "needs_discrepancy", False) and not model.has_world_model:
             raise ValueError("the discrepancy detector needs a world model (world_model.enabled is false)")
         if imagine and not model.has_world_model:
@@ -91,6 +109,9 @@ class DDPController(KeyedModule):
         self.track = track
         self.forecast_every_cycle = forecast_every_cycle
         self.seed = seed
+        self.on_nonfinite = on_nonfinite
+        self.hold = DELTAS if hold is None else hold
+        self.obs_spec = ObservationSpec(model.obs_steps, model.agent_pos_dim, model.point_dim, num_points)
         self.reset()
 
     @property
@@ -141,14 +162,35 @@ class DDPController(KeyedModule):
         m = real.shape[0]
         return float(((real - s.predicted[-m:]) ** 2).mean())
 
+    # ------------------------------------------------------------------ safety
+    def _usable(self, latents: torch.Tensor | None) -> bool:
+        return latents is not None and bool(torch.isfinite(latents).all())
+
+    def _hold_or_raise(self, b: int, chunk: int, why: str) -> torch.Tensor:
+        """The hold chunk for environment ``b`` (``on_nonfinite: hold``), or a NonFiniteError."""
+        where = f"controller: environment {b}, chunk {chunk}: {why}"
+        if self.on_nonfinite == "raise":
+            raise NonFiniteError(f"{where}; refusing to emit an action (controller.on_nonfinite: raise)")
+        held = self.hold.action(self.states[b].last_action, self.model.action_dim, self.model.action_steps)
+        if held is None:
+            raise NonFiniteError(f"{where}; cannot hold before the episode's first finite action (the env's "
+                                 "absolute action dimensions have no reset value)")
+        return held
+
     # ------------------------------------------------------------------ one cycle
     @torch.no_grad()
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         unbatched = td.batch_dims == 0
         if unbatched:
             td = td.unsqueeze(0)
-        B, M = td.batch_size[0], self.model.obs_steps
-        chunk_index = td.get(self.key("chunk_index")).reshape(B).tolist()
+        dev = self.device
+        # Observations checked at the boundary: one line for a wrong key, shape or dtype;
+        # ``finite[b]`` False for an environment whose point cloud or agent_pos holds NaN / inf.
+        point_cloud, agent_pos, chunk_index, finite = check_observation(
+            td, self.obs_spec, self._keys, dtype=next(self.model.parameters()).dtype
+        )
+        B, M = point_cloud.shape[0], self.model.obs_steps
+        env_device = td.get(self.key("point_cloud")).device
         if len(self.states) != B:
             self.states = [EnvState() for _ in range(B)]
         for b in range(B):
@@ -156,14 +198,17 @@ class DDPController(KeyedModule):
                 self.states[b] = EnvState()
 
         # O_real^t = E_psi(X_real^t), on the model's device (the env's tensors may live elsewhere)
-        dev, point_cloud = self.device, td.get(self.key("point_cloud"))
         if self.generator.device != dev:  # the model moved since reset(): same seed, new device
             self.generator = torch.Generator(device=dev).manual_seed(self.seed)
-        real = self.model.encode(point_cloud.to(dev), td.get(self.key("agent_pos")).to(dev))
+        real = self.model.encode(point_cloud.to(dev), agent_pos.to(dev))
+        # a non-finite observation, or latents that came out non-finite, are not reality: OOD
+        finite = finite & torch.isfinite(real).flatten(1).all(1).cpu()
         ee_shift = torch.zeros(B, 3)
         if self.forecast_every_cycle or getattr(self.detector, "needs_discrepancy", False):
             self._forecast(list(range(B)))
-        discrepancy = torch.tensor([self._discrepancy(real[b], self.states[b]) for b in range(B)])
+        discrepancy = torch.tensor(
+            [self._discrepancy(real[b], self.states[b]) if finite[b] else float("inf") for b in range(B)]
+        )
         td.set(self.key("discrepancy"), discrepancy)
 
         if ("privileged", "displacement") in td.keys(True):
@@ -192,10 +237,15 @@ class DDPController(KeyedModule):
 
         # 1. OOD detection & tracking
         ood_now = self.detector(td).get(("ddp", "ood")).reshape(B).tolist()
+        ood_now = [bool(o) or not bool(finite[b]) for b, o in enumerate(ood_now)]  # non-finite input: OOD
         offsets = self.tracker(td).get(("ddp", "offsets")) if self.tracker is not None else None
+        if offsets is not None:  # an offset the tracker could not measure is no displacement
+            offsets = torch.nan_to_num(offsets.cpu(), nan=0.0, posinf=0.0, neginf=0.0)
         for b, s in enumerate(self.states):
-            if not s.ood and ood_now[b] and (self.detector.sticky or s.has_forecast):
+            if not s.ood and ood_now[b] and (self.detector.sticky or s.has_forecast or not finite[b]):
                 s.ood = True  # OOD_Mode <- True
+                if not finite[b]:  # a sensor fault, not a displacement: re-check D_R-I once inputs are finite
+                    s.recheck_after = chunk_index[b]
                 if offsets is not None:
                     s.offsets = offsets[b]
                     s.displaced = (offsets[b].norm(dim=-1) > MIN_OFFSET) & ~s.recovered
@@ -204,7 +254,7 @@ class DDPController(KeyedModule):
                         ee_shift[b] += offsets[b][target]  # a^track_j = Delta p_Cj
             elif s.ood and not self.detector.sticky:
                 s.ood = bool(ood_now[b])  # re-decided every cycle (substitution, simulator oracle)
-            elif s.ood and s.recheck_after is not None and chunk_index[b] > s.recheck_after:
+            elif s.ood and s.recheck_after is not None and chunk_index[b] > s.recheck_after and finite[b]:
                 s.recheck_after = None
                 if not ood_now[b]:
                     s.ood = False  # D_R-I <= tau: return to reality
@@ -225,21 +275,36 @@ class DDPController(KeyedModule):
         # O_curr: real latents in ID, imagined ones in OOD (Enter Imagination)
         imagined = [self.imagine and s.ood and s.has_forecast for s in self.states]
         self._forecast([b for b in range(B) if imagined[b]])
+        imagined = [imagined[b] and self._usable(self.states[b].predicted) for b in range(B)]
         current = torch.stack(
-            [self.states[b].predicted[-M:] if imagined[b] else real[b] for b in range(B)]
+            [self.states[b].predicted[-M:] if imagined[b] else torch.nan_to_num(real[b]) for b in range(B)]
         )
 
         # 2. Action execution & recursive imagination
         chunk = self.model.sample_actions(current, generator=self.generator)
-        actions = self.model.executed_actions(chunk)
+        actions = self.model.executed_actions(chunk).cpu()
+        # A robot never receives a non-finite action: an environment that can neither trust its
+        # observation nor imagine, or whose actions came out non-finite, holds still (or we raise).
+        held = [False] * B
+        for b in range(B):
+            if not (finite[b] or imagined[b]):
+                why = "the observation (or its latents) is not finite and there is no imagined forecast to act from"
+            elif not bool(torch.isfinite(actions[b]).all()):
+                why = "the policy produced a non-finite action"
+            else:
+                self.states[b].last_action = actions[b, -1].clone()
+                continue
+            actions[b], held[b], ee_shift[b] = self._hold_or_raise(b, chunk_index[b], why), True, 0.0
         if self.model.has_world_model:
             # O_pred for the next cycle is W_phi(O_curr, a_t): in ID the forecast D_R-I compares
             # against, in OOD the autoregressive imagination the policy acts from (made lazily).
             for b, s in enumerate(self.states):
-                s.pending, s.predicted = (current[b], actions[b]), None
+                s.pending = None if held[b] else (current[b], actions[b].to(dev))
+                s.predicted = None
 
-        td.set(self.key("action"), actions.to(point_cloud.device))
+        td.set(self.key("action"), actions.to(env_device))
         td.set(self.key("ee_shift"), ee_shift)
+        td.set(self.key("held"), torch.tensor(held))
         td.set(self.key("mode"), torch.tensor([int(s.ood) for s in self.states]))
         td.set(self.key("imagined"), torch.tensor(imagined))
         td.set(self.key("subtask"), torch.tensor([s.subtask for s in self.states]))

@@ -73,6 +73,7 @@ from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
 from ddp.envs.seeding import EpisodeSeeds  # noqa: E402
 from ddp.errors import DDPError, suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
+from ddp.safety import HoldSpec, require_finite  # noqa: E402
 
 __all__ = ["AdroitEnvConfig", "AdroitEnv"]
 
@@ -194,6 +195,9 @@ class AdroitEnvConfig:
 class AdroitEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
     """An Adroit hand task (door, hammer, pen) with DP3 point clouds and optional occlusion."""
 
+    #: holding still: every dimension is an absolute joint target, repeated (none before the first action)
+    action_hold = HoldSpec(absolute="all")
+
     def __init__(self, config: AdroitEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
         cfg = AdroitEnvConfig() if config is None else config
         adroit_hand, mujoco = _import_sim()
@@ -257,6 +261,7 @@ class AdroitEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
         action = tensordict.get("action").detach().to("cpu", torch.float64).numpy().reshape(self.task.action_dim)
+        require_finite("action", action, "adroit env")
         state, reward, _, _, info = self.sim.step(np.clip(action, -1.0, 1.0))
         self._state = state
         self._steps += 1

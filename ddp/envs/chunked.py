@@ -27,6 +27,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from ddp.safety import require_finite
 from ddp.video import ChunkLabel, EpisodeRecorder, VideoSettings
 
 STACKED = ("point_cloud", "agent_pos")
@@ -116,6 +117,10 @@ class ChunkedEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shift = tensordict.get("ee_shift", None)
+        # the whole chunk is checked before any of it runs: no half-executed chunk ends in a refusal
+        require_finite("action chunk", tensordict.get("action"), "chunked env")
+        if shift is not None:
+            require_finite("end-effector shift", shift, "chunked env")
         if shift is not None and bool(shift.abs().max() > 0):
             self.base.shift_end_effector(shift.detach().cpu().numpy(), safe_lift=self.safe_lift)
         actions = tensordict.get("action")

@@ -86,6 +86,7 @@ from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
 from ddp.envs.seeding import EpisodeSeeds  # noqa: E402
 from ddp.errors import suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
+from ddp.safety import HoldSpec, require_finite  # noqa: E402
 
 __all__ = ["MetaWorldEnvConfig", "MetaWorldEnv"]
 
@@ -235,6 +236,9 @@ class MetaWorldEnvConfig:
 class MetaWorldEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
     """A MetaWorld v3 task with DP3 point clouds and the paper's OOD disturbances."""
 
+    #: holding still: xyz deltas at 0, the gripper (an absolute effort, -1 open after reset) unchanged
+    action_hold = HoldSpec(absolute=(3,), reset={3: -1.0})
+
     def __init__(self, config: MetaWorldEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
         cfg = MetaWorldEnvConfig() if config is None else config
         metaworld, mujoco = _import_sim()
@@ -324,6 +328,7 @@ class MetaWorldEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         cfg = self.config
         action = tensordict.get("action").detach().to("cpu", torch.float64).numpy().reshape(4)
+        require_finite("action", action, "metaworld env")
         t = self._steps
         plan = self._displacement_plan
         if plan is not None:
@@ -373,6 +378,7 @@ class MetaWorldEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
         ``("privileged", "ee_offset")``.
         """
         delta = np.asarray(delta, dtype=np.float64).reshape(3)
+        require_finite("end-effector shift", delta, "metaworld env")
         data = self.sim.data
         low, high = self.sim.mocap_low, self.sim.mocap_high
         start = data.mocap_pos[self._mocap].copy()

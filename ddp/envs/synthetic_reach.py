@@ -26,6 +26,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from ddp.registry import register
+from ddp.safety import DELTAS, require_finite
 
 CUBE_HALF = 0.02
 ACTION_SCALE = 0.02  # metres per unit action and step
@@ -84,6 +85,9 @@ def expert_action(ee: np.ndarray, cube: np.ndarray, attached: bool) -> np.ndarra
 @register("env", "synthetic_reach", config=SyntheticReachEnvConfig)
 class SyntheticReachEnv(EnvBase):
     """Point-cloud pick task (NumPy physics), seeded: the same seed gives the same episode."""
+
+    #: holding still: translations and gripper increments are deltas, all 0
+    action_hold = DELTAS
 
     def __init__(self, config: SyntheticReachEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
         super().__init__(device=device, batch_size=torch.Size([]))
@@ -173,6 +177,7 @@ class SyntheticReachEnv(EnvBase):
         if c.displacement and self._steps == c.displacement_chunk * c.chunk_len and not self.attached:
             self.displace_objects(np.asarray(c.displacement_delta))
         a = tensordict.get("action").detach().cpu().numpy().astype(np.float64)
+        require_finite("action", a, "synthetic_reach env")
         self.ee = self.ee + ACTION_SCALE * np.clip(a[:3], -1, 1)
         self.ee[2] = max(self.ee[2], 0.0)
         self.grip = float(np.clip(self.grip + 0.5 * np.clip(a[3], -1, 1), 0.0, 1.0))
@@ -197,6 +202,7 @@ class SyntheticReachEnv(EnvBase):
     def shift_end_effector(self, delta, *, safe_lift: float = 0.0) -> np.ndarray:
         """Move the end-effector (and a grasped cube) by ``delta``; returns the applied shift."""
         delta = np.asarray(delta, dtype=np.float64).reshape(3)
+        require_finite("end-effector shift", delta, "synthetic_reach env")
         self.ee = self.ee + delta
         self.ee_offset = self.ee_offset + delta
         if self.attached:

@@ -55,8 +55,10 @@ class DreamDiffusionPolicy(KeyedModule):
         self.policy_scheduler = policy_scheduler
         self.world_model_net = world_model_net
         self.world_model_scheduler = world_model_scheduler
-        self.normalizer = MinMaxNormalizer({"action": action_dim, "agent_pos": agent_pos_dim, "point_cloud": 3})
+        # every point channel is normalised (xyz, and rgb when point_dim is 6)
+        self.normalizer = MinMaxNormalizer({"action": action_dim, "agent_pos": agent_pos_dim, "point_cloud": point_dim})
         self.action_dim = action_dim
+        self.agent_pos_dim = agent_pos_dim
         self.point_dim = point_dim
         self.horizon = horizon
         self.obs_steps = obs_steps

@@ -33,8 +33,11 @@ class MinMaxNormalizer(nn.Module):
     def fit(self, data: Mapping[str, torch.Tensor]) -> "MinMaxNormalizer":
         """Fit every field from samples shaped [..., dim]."""
         for name in self.fields:
+            dim = getattr(self, f"{name}_scale").shape[0]
             x = torch.as_tensor(data[name], dtype=torch.float32)
-            x = x.reshape(-1, x.shape[-1])
+            if x.shape[-1] < dim:
+                raise ValueError(f"normalizer field '{name}' has {dim} features but the data have {x.shape[-1]}")
+            x = x.reshape(-1, x.shape[-1])[:, :dim]  # e.g. xyz of xyz+rgb clouds when point_dim is 3
             lo, hi = x.min(0).values, x.max(0).values
             rng = hi - lo
             degenerate = rng < RANGE_EPS

@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from ddp.envs.franka.backend import FrankaBackend
+from ddp.safety import require_finite
 
 __all__ = [
     "FrankaControl",
@@ -187,6 +188,7 @@ class FrankaControl:
     def clip_action(self, action) -> np.ndarray:
         """The action as executed: translation / rotation clipped per axis, gripper in [-1, 1]."""
         a = np.asarray(action, dtype=np.float64).reshape(ACTION_DIM)
+        require_finite("action", a, "franka control")  # a NaN gripper command would read as "open"
         return np.clip(a, self.action_low, self.action_high)
 
     def _targets(self, dpos: np.ndarray, drot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -226,6 +228,7 @@ class FrankaControl:
         of the commanded target actually applied (after clipping).
         """
         delta = np.asarray(delta, dtype=np.float64).reshape(3)
+        require_finite("end-effector shift", delta, "franka control")
         start = self.target_pos.copy()
         goal = np.clip(start + delta, self.low, self.high)
         waypoints = [goal]

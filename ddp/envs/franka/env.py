@@ -89,6 +89,7 @@ from ddp.envs.franka.tasks.base import CameraSpec  # noqa: E402
 from ddp.envs.seeding import EpisodeSeeds  # noqa: E402
 from ddp.errors import suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
+from ddp.safety import HoldSpec  # noqa: E402
 
 __all__ = ["FrankaEnvConfig", "FrankaEnv"]
 
@@ -306,6 +307,9 @@ class FrankaEnv(EpisodeSeeds, EnvBase):
     ``backend``: an already built :class:`FrankaBackend` to use instead of building one from the
     config (its cameras must match the config's image sizes); the caller then closes it.
     """
+
+    #: holding still: translation and rotation deltas at 0, the binary gripper command unchanged (open at reset)
+    action_hold = HoldSpec(absolute=(6,), reset={6: -1.0})
 
     def __init__(self, config: FrankaEnvConfig | None = None, *, seed: int | None = None, device="cpu", backend=None):
         cfg = FrankaEnvConfig() if config is None else config
