@@ -31,7 +31,9 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     """Milliseconds per call of each stage, and training samples per second."""
     from tensordict import TensorDict
 
-    dev = torch.device(device)
+    from ddp.train import resolve_device
+
+    dev = resolve_device(device, key="--device")
     model = exp.model.to(dev).eval()
     r = exp.recipe
     M, N, P, D = r.policy.obs_steps, r.policy.action_steps, r.task.num_points, r.task.agent_pos_dim

@@ -58,3 +58,28 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     if data.get("version") != VERSION:
         raise CheckpointError(f"{path}: checkpoint version {data.get('version')} is not supported (expected {VERSION})")
     return data
+
+
+def describe_mismatch(model: torch.nn.Module, weights: dict, limit: int = 3) -> str:
+    """One line: which keys a state dict lacks or adds, and which shapes differ, against ``model``.
+
+    Empty when the keys and shapes agree.
+    """
+    if not isinstance(weights, dict):
+        return f"the weights are a {type(weights).__name__}, not a state dict"
+    own = model.state_dict()
+    missing = [k for k in own if k not in weights]
+    unexpected = [k for k in weights if k not in own]
+    shapes = [
+        f"{k} {tuple(weights[k].shape)} vs {tuple(own[k].shape)}"
+        for k in own
+        if k in weights and hasattr(weights[k], "shape") and tuple(weights[k].shape) != tuple(own[k].shape)
+    ]
+
+    def part(label: str, items: list[str]) -> str:
+        more = f" (+{len(items) - limit} more)" if len(items) > limit else ""
+        return f"{len(items)} {label}: {', '.join(items[:limit])}{more}"
+
+    parts = [part(label, items) for label, items in (("missing", missing), ("unexpected", unexpected),
+                                                      ("shape mismatches (checkpoint vs model)", shapes)) if items]
+    return "; ".join(parts)

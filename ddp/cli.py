@@ -8,14 +8,25 @@ import os
 import sys
 
 from ddp.errors import DDPError
+from ddp.preemption import Preempted
 
 
-def _add_recipe_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("recipe", help="path to a YAML recipe")
+def _add_recipe_args(p: argparse.ArgumentParser, optional: bool = False) -> None:
+    if optional:
+        p.add_argument("recipe", nargs="?", help="path to a YAML recipe (default: the one stored in the checkpoint)")
+    else:
+        p.add_argument("recipe", help="path to a YAML recipe")
     p.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
         help="override a recipe value, e.g. --set policy.scheduler.num_inference_steps=5 (repeatable)",
     )
+
+
+def _at_least_one(**flags) -> None:
+    """One line for a count flag below 1 (instead of a silent default or a deep error)."""
+    for name, value in flags.items():
+        if value is not None and value < 1:
+            raise DDPError(f"--{name.replace('_', '-')}: must be >= 1; got {value}")
 
 
 def cmd_list(args) -> int:
@@ -88,10 +99,14 @@ def _print_eval(report: dict, out_dir) -> None:
 def cmd_eval(args) -> int:
     from pathlib import Path
 
-    from ddp.experiment import build
+    from ddp.experiment import build, experiment_from_checkpoint
 
-    exp = build(args.recipe, args.overrides)
-    exp.load_checkpoint(args.checkpoint, ema=not args.raw_weights)
+    if args.recipe is None:  # the recipe stored in the checkpoint; its plugin modules only on --trust-plugins
+        exp = experiment_from_checkpoint(args.checkpoint, ema=not args.raw_weights, trust_plugins=args.trust_plugins,
+                                         overrides=args.overrides)
+    else:
+        exp = build(args.recipe, args.overrides)
+        exp.load_checkpoint(args.checkpoint, ema=not args.raw_weights)
     protocols = args.protocols.split(",") if args.protocols else None
     out_dir = Path(args.output_dir or exp.recipe.eval.output_dir.format(name=exp.recipe.name))
     report = exp.evaluate(protocols, episodes=args.episodes, output_dir=out_dir, num_envs=args.num_envs,
@@ -128,6 +143,7 @@ def cmd_bench(args) -> int:
     from ddp.bench import bench
     from ddp.experiment import build
 
+    _at_least_one(repeats=args.repeats, threads=args.threads)
     if args.threads:
         torch.set_num_threads(args.threads)
     exp = build(args.recipe, args.overrides)
@@ -142,6 +158,7 @@ def cmd_bench(args) -> int:
 def cmd_demos(args) -> int:
     from ddp.data.demos import prepare_demos
 
+    _at_least_one(episodes=args.episodes)
     info = prepare_demos(args.recipe, args.overrides, episodes=args.episodes, regenerate=args.regenerate,
                          progress=not args.quiet)
     stats = info.get("stats") or {}
@@ -194,8 +211,10 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_demos)
 
-    p = sub.add_parser("eval", help="evaluate a checkpoint", description="Run evaluation protocols (id, ood_base, ood_tracking, ood_ddp, imagination_10/50/100, occlusion) and write results.json, table.md and plots.")
-    _add_recipe_args(p)
+    p = sub.add_parser("eval", help="evaluate a checkpoint", description="Run evaluation protocols (id, ood_base, ood_tracking, ood_ddp, imagination_10/50/100, occlusion) and write results.json, table.md and plots. Without RECIPE the checkpoint's stored recipe is used; its plugin modules are imported only with --trust-plugins.")
+    _add_recipe_args(p, optional=True)
+    p.add_argument("--trust-plugins", action="store_true",
+                   help="without RECIPE: import the plugin modules the checkpoint's recipe lists (runs their code)")
     p.add_argument("--checkpoint", required=True, help="checkpoint written by ddp train (last.pt)")
     p.add_argument("--protocols", help="comma-separated protocols (default: the recipe's eval.protocols)")
     p.add_argument("--episodes", type=int, help="episodes per protocol (default: eval.episodes)")
@@ -235,6 +254,9 @@ def main(argv: list[str] | None = None) -> int:
     except DDPError as err:
         print(f"ddp: error: {err}", file=sys.stderr)
         return 2
+    except Preempted as err:
+        print(f"ddp: {err} (a checkpoint was written where training was running)", file=sys.stderr)
+        return 128 + err.signum
     except KeyboardInterrupt:
         print("ddp: interrupted (a checkpoint was written where training was running)", file=sys.stderr)
         return 130

@@ -9,6 +9,7 @@ naming the recipe file and the dotted key.
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from typing import Any, Literal, Union, get_args, get_origin
@@ -109,6 +110,8 @@ def coerce(value: Any, tp: Any, key: str, source: str | None) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise fail()
+        if not math.isfinite(value):
+            raise RecipeError(f"must be a finite number; got {value!r}", source=source, key=key)
         return float(value)
     if tp is str:
         if not isinstance(value, str):

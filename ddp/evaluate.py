@@ -1,62 +1,22 @@
-"""Evaluation protocols (the paper's Table 1 conditions) run through TorchRL collectors.
-
-Each protocol is an environment condition plus a controller setting:
-
-==================  ==========================  ==============================================
-protocol            environment                 controller
-==================  ==========================  ==============================================
-id                  in distribution             base policy (detector ``never``)
-ood_base            displacement                base policy, no tracking
-ood_tracking        displacement                oracle detector + tracking/recovery, real latents
-                                                (the paper's "DP3 (Ablation)")
-ood_ddp             displacement                the recipe's controller: detect, track, imagine
-imagination_10/50/  in distribution             real latents replaced by imagined ones with
-100                                             probability 0.1 / 0.5 / 1 after the first chunk
-occlusion           camera blind for some       the recipe's detector; imagination through it
-                    chunks
-==================  ==========================  ==============================================
-"""
+"""Evaluation: the protocols of :mod:`ddp.protocols` (the paper's Table 1 conditions) run through
+TorchRL collectors; results.json, table.md and plots written per run."""
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
 from ddp.envs.chunked import ChunkedEnv, chunk_render_config
 from ddp.errors import RecipeError
+from ddp import results_json
+from ddp.protocols import PROTOCOLS, Protocol, check_protocols
 from ddp.video import VideoSettings
-
-
-@dataclass(frozen=True)
-class Protocol:
-    env: dict = field(default_factory=dict)  # env config overrides
-    env_if_supported: dict = field(default_factory=dict)  # overrides applied only where the env has the field
-    detector: dict | None = None  # None: the recipe's detector
-    imagine: bool | None = None  # None: the recipe's
-    tracker: bool = True
-    occlusion: bool = False
-    env_tracking: bool = False  # honour eval.env_oracle_tracking
-
-
-PROTOCOLS: dict[str, Protocol] = {
-    "id": Protocol(detector={"name": "never"}, tracker=False),
-    "ood_base": Protocol(env={"displacement": True}, env_if_supported={"oracle_tracking": False},
-                         detector={"name": "never"}, tracker=False),
-    "ood_tracking": Protocol(env={"displacement": True}, detector={"name": "oracle"}, imagine=False, env_tracking=True),
-    "ood_ddp": Protocol(env={"displacement": True}, env_tracking=True),
-    "imagination_10": Protocol(detector={"name": "substitution", "p": 0.1}, tracker=False),
-    "imagination_50": Protocol(detector={"name": "substitution", "p": 0.5}, tracker=False),
-    "imagination_100": Protocol(detector={"name": "substitution", "p": 1.0}, tracker=False),
-    "occlusion": Protocol(occlusion=True, tracker=False),
-}
 
 
 def _env_overrides(exp, protocol: Protocol, max_steps: int | None) -> dict:
@@ -108,7 +68,7 @@ def env_factory(exp, seed: int, overrides: dict | None = None, video: VideoSetti
     return ChunkedEnvFactory(
         plugin=part.plugin.name, config=dataclasses.replace(part.config, **(overrides or {})),
         action_steps=pol.action_steps, obs_steps=pol.obs_steps, safe_lift=exp.recipe.controller.safe_lift,
-        seed=seed, video=video, plugin_modules=tuple(exp.recipe.plugins),
+        seed=seed, video=video, plugin_modules=exp.plugin_modules,
     )
 
 
@@ -224,17 +184,18 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     cfg = exp.recipe.eval
     if exp.parts.get("env") is None:
         raise RecipeError("evaluation needs an env section", source=exp.source, key="env")
-    protocols = list(protocols or cfg.protocols)
-    unknown = [p for p in protocols if p not in PROTOCOLS]
-    if unknown:
-        from ddp.errors import suggest
-
-        raise RecipeError(
-            f"unknown protocol '{unknown[0]}'{suggest(unknown[0], PROTOCOLS)} (known: {', '.join(PROTOCOLS)})",
-            source=exp.source, key="eval.protocols",
-        )
-    episodes = episodes or cfg.episodes
-    num_envs = num_envs or cfg.num_envs
+    if protocols is None:
+        protocols = list(cfg.protocols)
+    else:
+        protocols = list(protocols)
+        check_protocols(protocols, source="--protocols")
+        if not protocols:
+            raise RecipeError("no protocol given", source="--protocols")
+    episodes = cfg.episodes if episodes is None else episodes
+    num_envs = cfg.num_envs if num_envs is None else num_envs
+    for flag, value in (("--episodes", episodes), ("--num-envs", num_envs)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise RecipeError(f"must be a whole number >= 1; got {value!r}", source=flag)
     seed = cfg.seed if seed is None else seed
     video = cfg.video if video is None else video
     parallel = cfg.parallel if parallel is None else parallel
@@ -242,7 +203,7 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     out_dir.mkdir(parents=True, exist_ok=True)
     from ddp.train import resolve_device
 
-    exp.model.to(resolve_device(cfg.device))  # the envs stay on the CPU; the controller moves tensors
+    exp.model.to(resolve_device(cfg.device, source=exp.source, key="eval.device"))  # the envs stay on the CPU; the controller moves tensors
     report = {"recipe": exp.recipe.name, "episodes": episodes, "seed": seed, "protocols": {}}
     calibration = None  # thresholds calibrated once, on ID rollouts, for every protocol that needs them
     for name in protocols:
@@ -275,7 +236,7 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
         if vid is not None:
             files = sorted(p for p in Path(vid.directory).glob("seed*") if p.suffix in (".mp4", ".gif"))
             report["protocols"][name]["videos"] = [str(p) for p in files]
-    (out_dir / "results.json").write_text(json.dumps(report, indent=1))
+    (out_dir / "results.json").write_text(results_json.dumps(report))  # strict JSON: NaN -> null
     (out_dir / "table.md").write_text(markdown_table({exp.recipe.name: report}))
     from ddp.plots import plot_report
 

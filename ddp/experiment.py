@@ -9,7 +9,7 @@ from typing import Iterable
 import torch
 
 from ddp.checkpoint import load_checkpoint
-from ddp.errors import CheckpointError
+from ddp.errors import CheckpointError, RecipeError
 from ddp.recipe import dump_yaml, load_recipe
 from ddp.schema import validate
 
@@ -23,13 +23,18 @@ class Experiment:
     ``parts`` (each plugin section's registry entry and config), ``model``.
     """
 
-    def __init__(self, data: dict, source: str):
+    def __init__(self, data: dict, source: str, *, trust_plugins: bool = True):
         self.source = source
-        self.recipe, self.parts, self.resolved = validate(data, source)
+        self.recipe, self.parts, self.resolved = validate(data, source, import_plugins=trust_plugins)
+        #: the plugin modules imported for this recipe (evaluation workers import the same ones)
+        self.plugin_modules: tuple[str, ...] = tuple(self.recipe.plugins) if trust_plugins else ()
         torch.manual_seed(self.recipe.seed)
         from ddp.models.factory import build_model
 
-        self.model = build_model(self.recipe, self.parts)
+        try:
+            self.model = build_model(self.recipe, self.parts)
+        except RecipeError as err:
+            raise RecipeError(err.reason, source=err.source or source, key=err.key) from None
         self._episodes = None
 
     def __repr__(self) -> str:
@@ -77,14 +82,25 @@ class Experiment:
 
         ``state`` is the checkpoint already read from ``path`` (to avoid reading it twice).
         """
+        from ddp.checkpoint import describe_mismatch
+
         state = load_checkpoint(path) if state is None else state
+        if not isinstance(state.get("model"), dict):
+            raise CheckpointError(f"{path}: the checkpoint holds no model weights ('model' is missing)")
         weights = state["model"]
-        if ema and "ema" in state:
+        if ema and isinstance(state.get("ema"), dict):
             prefix = "module."
             weights = {k[len(prefix) :]: v for k, v in state["ema"].items() if k.startswith(prefix)}
+        mismatch = describe_mismatch(self.model, weights)
+        if mismatch:
+            raise CheckpointError(f"{path}: weights do not fit this recipe's model: {mismatch}")
+        bad = next((k for k, v in weights.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())), None)
+        if bad is not None:  # checked before loading: the model keeps its weights
+            raise CheckpointError(f"{path}: the {'EMA ' if weights is not state['model'] else ''}weights hold NaN "
+                                  f"or inf ({bad}): refusing to load them")
         try:
             self.model.load_state_dict(weights)
-        except RuntimeError as err:
+        except (RuntimeError, TypeError) as err:
             first = str(err).strip().splitlines()[0]
             raise CheckpointError(f"{path}: weights do not fit this recipe's model: {first}") from None
         return self
@@ -152,19 +168,50 @@ class Experiment:
         return counts
 
 
+def blame_override(err: RecipeError, overrides: list[str]) -> RecipeError:
+    """``err`` re-attributed to the ``--set`` override that wrote its key, if one did."""
+    if not err.key:
+        return err
+    key = err.key.split("[")[0]
+    for text in reversed(overrides):
+        dotted = text.partition("=")[0].strip()
+        if key == dotted or key.startswith(dotted + ".") or dotted.startswith(key + "."):
+            return RecipeError(err.reason, source=f"--set {text}", key=err.key)
+    return err
+
+
 def build(recipe: str | os.PathLike | dict, overrides: Iterable[str] = ()) -> Experiment:
     """Load, validate and assemble a recipe: ``build("recipes/quickstart.yaml")``.
 
     ``overrides`` are dotted assignments, e.g. ``["policy.scheduler.num_inference_steps=5"]``.
     """
+    overrides = list(overrides)
     data, source = load_recipe(recipe, overrides)
-    return Experiment(data, source)
+    try:
+        return Experiment(data, source)
+    except RecipeError as err:
+        raise blame_override(err, overrides) from None
 
 
-def experiment_from_checkpoint(path: str | os.PathLike, ema: bool = True) -> Experiment:
-    """Rebuild the experiment stored inside a checkpoint and load its weights."""
-    from ddp.recipe import load_yaml
+def experiment_from_checkpoint(path: str | os.PathLike, ema: bool = True, *, trust_plugins: bool = False,
+                               overrides: Iterable[str] = ()) -> Experiment:
+    """Rebuild the experiment stored inside a checkpoint and load its weights.
+
+    The weights load as plain tensors (never code). The stored recipe's ``plugins:`` modules
+    are NOT imported unless ``trust_plugins`` is true: a checkpoint someone sent you would
+    otherwise run their code. The modules left out are named in one warning line.
+    """
+    import warnings
+
+    from ddp.recipe import apply_overrides, load_yaml
 
     state = load_checkpoint(path)
-    exp = Experiment(load_yaml(state["recipe"]), f"{path}#recipe")
+    if not isinstance(state.get("recipe"), str):
+        raise CheckpointError(f"{path}: the checkpoint holds no recipe (it was not written by ddp train)")
+    data = apply_overrides(load_yaml(state["recipe"]), overrides)
+    modules = data.get("plugins") or []
+    if modules and not trust_plugins:
+        warnings.warn(f"{path}: not importing the plugin modules its recipe lists ({', '.join(map(str, modules))}); "
+                      "pass trust_plugins=True (--trust-plugins) if you trust their code", stacklevel=2)
+    exp = Experiment(data, f"{path}#recipe", trust_plugins=trust_plugins)
     return exp.load_checkpoint(path, ema=ema, state=state)

@@ -38,6 +38,26 @@ RecipeLoader.add_implicit_resolver(
 )
 
 
+def _mapping_without_duplicates(loader: yaml.SafeLoader, node: yaml.MappingNode) -> dict:
+    """A YAML mapping; a key given twice is an error (YAML forbids it; PyYAML keeps the last silently)."""
+    seen: dict = {}
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge" or not isinstance(key_node, yaml.ScalarNode):
+            continue  # '<<' merges (construct_mapping flattens them) and complex keys
+        key = loader.construct_object(key_node, deep=True)
+        if not isinstance(key, (str, int, float, bool)) or key is None:
+            continue  # an unhashable or odd key: construct_mapping reports it
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"duplicate key '{key}' (first given on line {seen[key] + 1})", key_node.start_mark
+            )
+        seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep=True)
+
+
+RecipeLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_duplicates)
+
+
 def load_yaml(text: str) -> Any:
     """Parse recipe YAML (safe: plain data only) with YAML 1.2 number syntax."""
     return yaml.load(text, Loader=RecipeLoader)  # noqa: S506 (RecipeLoader is a SafeLoader)
@@ -52,6 +72,9 @@ def _read_yaml(path: Path, *, referenced_by: str | None = None) -> dict:
         raise RecipeError("recipe file not found", source=str(path)) from None
     except OSError as err:
         raise RecipeError(f"cannot read recipe: {err.strerror}", source=str(path)) from None
+    except UnicodeDecodeError as err:
+        raise RecipeError(f"not a text file (byte {err.start} is not UTF-8): a recipe is YAML text",
+                          source=str(path)) from None
     try:
         data = load_yaml(text)
     except yaml.YAMLError as err:
@@ -154,3 +177,32 @@ def load_recipe(path: str | os.PathLike | dict, overrides: Iterable[str] = ()) -
 
 def dump_yaml(data: dict) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
+
+
+def flatten(data: dict, prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` (lists are values)."""
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        dotted = f"{prefix}.{key}" if prefix else str(key)
+        if isinstance(value, dict) and value:
+            out.update(flatten(value, dotted))
+        else:
+            out[dotted] = value
+    return out
+
+
+def recipe_changes(stored: dict, current: dict) -> dict[str, tuple[Any, Any]]:
+    """Dotted keys whose value differs: ``{key: (stored, current)}``.
+
+    A key the stored recipe lacks is not a change (it did not exist when that recipe was written).
+    """
+    old, new = flatten(stored), flatten(current)
+    missing = object()
+    changes = {}
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key, missing), new.get(key, missing)
+        if a is missing:
+            continue
+        if a != b:
+            changes[key] = (a, None if b is missing else b)
+    return changes

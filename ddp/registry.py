@@ -14,6 +14,8 @@ import dataclasses
 import fnmatch
 import importlib
 import importlib.metadata
+import importlib.util
+import os
 import warnings
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -116,7 +118,7 @@ def load_entry_points(force: bool = False) -> dict[str, str]:
         try:
             ep.load()
         except Exception as err:  # noqa: BLE001 - report any import failure by name
-            msg = f"{type(err).__name__}: {err}"
+            msg = f"{type(err).__name__}: {err}{shadowing_note(ep.module, getattr(ep, 'dist', None))}"
             _failed[ep.name] = msg
             warnings.warn(f"ddp plugin '{ep.name}' ({ep.value}) failed to import: {msg}", stacklevel=2)
     return dict(_failed)
@@ -129,8 +131,34 @@ def import_plugin_modules(modules: list[str], *, source: str | None = None, key:
             importlib.import_module(mod)
         except Exception as err:  # noqa: BLE001
             raise RecipeError(
-                f"cannot import plugin module '{mod}': {type(err).__name__}: {err}", source=source, key=f"{key}[{i}]"
+                f"cannot import plugin module '{mod}': {type(err).__name__}: {err}{shadowing_note(mod)}",
+                source=source, key=f"{key}[{i}]",
             ) from None
+
+
+def shadowing_note(module: str, dist=None) -> str:
+    """`` (a folder ... shadows it)`` when ``module``'s top-level package resolves into the working directory
+    (and not into the distribution that declared it); else an empty string."""
+    top = str(module).split(".")[0]
+    try:
+        spec = importlib.util.find_spec(top)
+    except Exception:  # noqa: BLE001 - a broken package is reported by the import error itself
+        return ""
+    if spec is None:
+        return ""
+    found = [os.path.abspath(p) for p in (spec.submodule_search_locations or [spec.origin]) if p]
+    cwd = os.path.abspath(os.getcwd())
+    inside = [p for p in found if p == cwd or p.startswith(cwd + os.sep)]
+    if not inside:
+        return ""
+    if dist is not None:
+        try:
+            root = os.path.abspath(str(dist.locate_file("")))
+        except Exception:  # noqa: BLE001
+            root = None
+        if root and any(p.startswith(root + os.sep) for p in inside):
+            return ""  # the distribution itself lives here (a plugin developed in place)
+    return f" ('{top}' resolves to {inside[0]}: a folder of that name in the working directory shadows the installed package)"
 
 
 def _ensure(kind: str) -> None:

@@ -267,18 +267,59 @@ def _set(data: dict, dotted: str, value) -> None:
     node[last] = value
 
 
-def validate(data: dict, source: str | None) -> tuple[Recipe, dict[str, Part], dict]:
-    """Recipe dataclass, resolved parts, and the fully resolved (defaults filled) dict."""
-    registry.import_plugin_modules(list(data.get("plugins") or []), source=source)
+def _env_follows_task(part: Part, section, task: TaskConfig) -> Part:
+    """An env section that leaves ``num_points`` / ``point_dim`` unset renders what ``task`` says."""
+    import dataclasses
+
+    names = {f.name for f in dataclasses.fields(part.config)}
+    given = section if isinstance(section, dict) else {}
+    fill = {n: getattr(task, n) for n in ("num_points", "point_dim") if n in names and n not in given}
+    return Part(part.plugin, dataclasses.replace(part.config, **fill)) if fill else part
+
+
+def _check_cross_section(recipe: Recipe, parts: dict[str, Part], source: str | None) -> None:
+    """Rules that span sections: protocol names, and the env's shapes against ``task``."""
+    from ddp.protocols import check_protocols
+
+    check_protocols(recipe.eval.protocols, source=source, key="eval.protocols")
+    env = parts.get("env")
+    if env is not None:
+        for name in ("num_points", "point_dim"):
+            value = getattr(env.config, name, None)
+            if value is not None and value != getattr(recipe.task, name):
+                raise RecipeError(f"{value} differs from task.{name} ({getattr(recipe.task, name)}): the env would "
+                                  f"feed the model clouds it was not built for", source=source, key=f"env.{name}")
+
+
+def validate(data: dict, source: str | None, *, import_plugins: bool = True) -> tuple[Recipe, dict[str, Part], dict]:
+    """Recipe dataclass, resolved parts, and the fully resolved (defaults filled) dict.
+
+    The modules under ``plugins:`` are imported (that runs their code, like any Python import)
+    unless ``import_plugins`` is false, as for a recipe read from a checkpoint nobody vouched for.
+    """
+    modules = data.get("plugins") or []
+    if import_plugins and isinstance(modules, list):
+        registry.import_plugin_modules([str(m) for m in modules], source=source)
     recipe = from_dict(Recipe, data, source=source)
     resolved = to_dict(recipe)
     parts: dict[str, Part] = {}
+    skipped = [] if import_plugins else list(recipe.plugins)
     for dotted, kind in PART_SECTIONS.items():
         if dotted in OPTIONAL_SECTIONS and _get(resolved, dotted) is None:
             continue
-        part = resolve_part(kind, _get(resolved, dotted), key=dotted, source=source)
+        try:
+            part = resolve_part(kind, _get(resolved, dotted), key=dotted, source=source)
+        except RecipeError as err:
+            if skipped and err.reason.startswith("unknown "):
+                raise RecipeError(f"{err.reason}; the recipe's plugin modules were not imported "
+                                  f"({', '.join(skipped)}): pass trust_plugins=True (--trust-plugins) "
+                                  "if you trust their code", source=err.source, key=err.key) from None
+            raise
+        if dotted == "env":
+            part = _env_follows_task(part, _get(resolved, dotted), recipe.task)
         parts[dotted] = part
         _set(resolved, dotted, part.as_dict())
+    _check_cross_section(recipe, parts, source)
     for i, sub in enumerate(resolved["controller"]["subtasks"]):
         if sub["trigger"] is not None:
             key = f"controller.subtasks[{i}].trigger"

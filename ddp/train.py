@@ -18,15 +18,71 @@ from tqdm.auto import tqdm
 
 from ddp.checkpoint import load_checkpoint, save_checkpoint
 from ddp.data.sequence import SequenceDataset
+from ddp.errors import CheckpointError, RecipeError
 from ddp.models.ema import EMA
+from ddp.preemption import interruption, signals_deferred, stop_signals
+from ddp.recipe import load_yaml, recipe_changes
+from ddp.run_dir import RunLock, remove_leftovers, trim_csv_logs
 
 LAST = "last.pt"
 
+#: recipe keys (and sections) that may change when a run resumes; any other change is refused.
+#: A changed max_steps / epochs stretches the cosine schedule from the step reached (the LR jumps).
+RESUMABLE = (
+    "train.max_steps", "train.epochs", "train.checkpoint_every_epochs", "train.log_every_steps",
+    "train.num_threads", "train.logger", "train.device", "train.output_dir", "train.compile", "eval", "controller",
+)
+#: what a checkpoint must hold to resume training from it
+RESUME_KEYS = ("model", "optimizer", "lr_scheduler", "noise_rng", "step", "epoch", "batch_in_epoch", "recipe")
 
-def resolve_device(name: str) -> torch.device:
+
+def resolve_device(name: str, *, source: str | None = None, key: str = "train.device") -> torch.device:
+    """``auto`` (CUDA when available), ``cpu``, ``cuda``, ``cuda:1``, ...; one line if unusable here."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise RecipeError(f"'{name}' is not a torch device (auto, cpu, cuda, cuda:1, mps)", source=source,
+                          key=key) from None
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            build = f"torch {torch.__version__}" + ("" if torch.version.cuda else ", a CPU-only build")
+            raise RecipeError(f"'{name}' but CUDA is not available ({build}); use auto or cpu", source=source,
+                              key=key)
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise RecipeError(f"'{name}' but this machine has {torch.cuda.device_count()} CUDA device(s)",
+                              source=source, key=key)
+    elif device.type == "mps" and not torch.backends.mps.is_available():
+        raise RecipeError(f"'{name}' but MPS is not available here; use auto or cpu", source=source, key=key)
+    return device
+
+
+def _show(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def check_resumable(path: Path, state: dict, current: dict) -> None:
+    """Refuse, in one line, a checkpoint that cannot continue this recipe's run."""
+    missing = [k for k in RESUME_KEYS if k not in state]
+    if missing:
+        raise CheckpointError(f"{path}: cannot resume: the checkpoint lacks {', '.join(missing)}")
+    try:
+        stored = load_yaml(state["recipe"])
+    except Exception:  # noqa: BLE001 - any unreadable stored recipe
+        raise CheckpointError(f"{path}: cannot resume: the stored recipe is not readable YAML") from None
+    changes = {
+        k: v for k, v in recipe_changes(stored if isinstance(stored, dict) else {}, current).items()
+        if not any(k == r or k.startswith(r + ".") for r in RESUMABLE)
+    }
+    if changes:
+        shown = ", ".join(f"{k}: {_show(a)} -> {_show(b)}" for k, (a, b) in list(changes.items())[:4])
+        more = f" (and {len(changes) - 4} more)" if len(changes) > 4 else ""
+        raise CheckpointError(
+            f"{path}: cannot resume: the recipe differs from the run's ({shown}{more}); use --no-resume to start "
+            f"over, or another --output-dir (may change on resume: {', '.join(RESUMABLE)})"
+        )
 
 
 def warmup_cosine(warmup: int, total: int, schedule: str):
@@ -62,7 +118,7 @@ class Trainer:
         self.cfg = cfg
         self.output_dir = Path(output_dir or cfg.output_dir.format(name=experiment.recipe.name))
         self.progress = progress
-        self.device = resolve_device(cfg.device)
+        self.device = resolve_device(cfg.device, source=experiment.source)
         if cfg.num_threads:
             torch.set_num_threads(cfg.num_threads)
 
@@ -74,6 +130,13 @@ class Trainer:
         return torch.randperm(n, generator=g)
 
     def fit(self, resume: bool = True) -> TrainResult:
+        """Train (resuming from ``<output_dir>/last.pt`` when ``resume``), holding the directory's lock."""
+        # SIGTERM / SIGHUP (a scheduler's preemption) end training like Ctrl-C: with a checkpoint
+        with RunLock(self.output_dir), stop_signals():
+            remove_leftovers(self.output_dir, LAST)  # temporary files of writes a kill interrupted
+            return self._fit(resume)
+
+    def _fit(self, resume: bool) -> TrainResult:
         exp, cfg, model = self.exp, self.cfg, self.exp.model
         pol = exp.recipe.policy
         episodes = exp.episodes()
@@ -84,6 +147,8 @@ class Trainer:
         )
         ckpt_path = self.output_dir / LAST
         state = load_checkpoint(ckpt_path) if resume and ckpt_path.exists() else None
+        if state is not None:
+            check_resumable(ckpt_path, state, exp.resolved)
         if state is None:
             model.normalizer.fit({k: episodes.steps[k] for k in ("action", "agent_pos", "point_cloud")})
         model.to(self.device).train()
@@ -97,13 +162,21 @@ class Trainer:
         noise = torch.Generator(device=self.device).manual_seed(exp.recipe.seed)
         step, epoch, batch_in_epoch = 0, 0, 0
         if state is not None:
-            model.load_state_dict(state["model"])
-            if ema is not None and "ema" in state:
-                ema.load_state_dict(state["ema"])
-            optimizer.load_state_dict(state["optimizer"])
-            lr_sched.load_state_dict(state["lr_scheduler"])
-            noise.set_state(state["noise_rng"])
+            try:
+                model.load_state_dict(state["model"])
+                if ema is not None and "ema" in state:
+                    ema.load_state_dict(state["ema"])
+                optimizer.load_state_dict(state["optimizer"])
+                lr_sched.load_state_dict(state["lr_scheduler"])
+                noise.set_state(state["noise_rng"])
+            except (RuntimeError, ValueError, KeyError, TypeError) as err:
+                from ddp.checkpoint import describe_mismatch
+
+                raise CheckpointError(f"{ckpt_path}: cannot resume into this recipe's model: "
+                                      f"{describe_mismatch(model, state['model']) or str(err).splitlines()[0]}") from None
             step, epoch, batch_in_epoch = int(state["step"]), int(state["epoch"]), int(state["batch_in_epoch"])
+            if cfg.logger == "csv":
+                trim_csv_logs(self.output_dir, step)  # rows a killed run logged after its last checkpoint
         logger = self._logger()
         loss_fn = torch.compile(model.loss) if cfg.compile else model.loss
         sums = {"loss": 0.0, "loss_bc": 0.0, "loss_wm": 0.0}
@@ -111,7 +184,10 @@ class Trainer:
         t0, samples = time.perf_counter(), 0
         bar = tqdm(total=total, initial=step, disable=not self.progress, desc=exp.recipe.name, unit="step")
 
+        saved_step = step if state is not None else -1
+
         def checkpoint() -> Path:
+            nonlocal saved_step
             payload = {
                 "model": model.state_dict(),
                 "optimizer": optimizer.state_dict(),
@@ -124,7 +200,13 @@ class Trainer:
             }
             if ema is not None:
                 payload["ema"] = ema.state_dict()
-            return save_checkpoint(ckpt_path, payload)
+            # no signal lands in the middle of the write: a second Ctrl-C is noted and acted on after it
+            with signals_deferred() as received:
+                path = save_checkpoint(ckpt_path, payload)
+                saved_step = step
+            if received:
+                raise interruption(received[0])
+            return path
 
         try:
             while epoch < cfg.epochs and step < total:
@@ -161,9 +243,13 @@ class Trainer:
                     epoch, batch_in_epoch = epoch + 1, 0
                     if epoch % cfg.checkpoint_every_epochs == 0:
                         checkpoint()
-        except KeyboardInterrupt:
+        except KeyboardInterrupt:  # Ctrl-C, or Preempted (SIGTERM / SIGHUP)
             bar.close()
-            checkpoint()
+            if saved_step != step:
+                try:
+                    checkpoint()
+                except KeyboardInterrupt:
+                    pass  # a second Ctrl-C during the save: the save completed; stop as asked
             raise
         bar.close()
         path = checkpoint()

@@ -15,7 +15,6 @@ late (see ddp/separability.py).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from pathlib import Path
 
@@ -31,16 +30,19 @@ def main(argv=None) -> int:
     parser.add_argument("--tau", type=float, default=None, help="threshold (default: the recipe's, else calibrated)")
     parser.add_argument("--output-dir", default=None, help="default: <checkpoint dir>/separability")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--trust-plugins", action="store_true",
+                        help="import the plugin modules the checkpoint's recipe lists (runs their code)")
     args = parser.parse_args(argv)
 
+    from ddp import results_json
     from ddp.experiment import experiment_from_checkpoint
     from ddp.separability import format_report, plot_separability, separability
 
-    exp = experiment_from_checkpoint(args.checkpoint)
+    exp = experiment_from_checkpoint(args.checkpoint, trust_plugins=args.trust_plugins)
     rep = separability(exp, episodes=args.episodes, seed=args.seed, tau=args.tau, progress=not args.quiet)
     out = Path(args.output_dir or Path(args.checkpoint).parent / "separability")
     out.mkdir(parents=True, exist_ok=True)
-    (out / "separability.json").write_text(json.dumps(rep, indent=1))
+    (out / "separability.json").write_text(results_json.dumps(rep))
     plot_separability(rep, out / "separability.png")
     print(format_report(rep))
     print(f"wrote {out / 'separability.json'} and {out / 'separability.png'}")

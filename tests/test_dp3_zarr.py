@@ -5,6 +5,7 @@ are exported in DP3's layout and imported back.
 """
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -70,12 +71,12 @@ def test_round_trip_identical_arrays(dp3_dir, demos):
         assert back.steps[k].dtype == torch.float32
 
     # through the registry, as a recipe's data section: xyz only by default
-    loaded = _source({"name": "dp3_zarr", "path": str(dp3_dir)}).load()
+    loaded = _source({"name": "dp3_zarr", "path": str(dp3_dir)}, task={"num_points": 48}).load()
     assert set(loaded.steps.keys()) == {"point_cloud", "agent_pos", "action"}
     assert torch.equal(loaded.steps["point_cloud"], demos.steps["point_cloud"][..., :3])
     assert torch.equal(loaded.episode_ends, demos.episode_ends)
     six = _source({"name": "dp3_zarr", "path": str(dp3_dir), "point_cloud_channels": 6},
-                  task={"point_dim": 6}).load()  # fmt: skip
+                  task={"point_dim": 6, "num_points": 48}).load()  # fmt: skip
     assert torch.equal(six.steps["point_cloud"], demos.steps["point_cloud"])
 
 
@@ -83,8 +84,8 @@ def test_round_trip_identical_arrays(dp3_dir, demos):
 def test_subsampling_is_deterministic_and_keeps_stored_points(dp3_dir, demos, method):
     data = {"name": "dp3_zarr", "path": str(dp3_dir), "num_points": 16, "subsample": method,
             "point_cloud_channels": 6}  # fmt: skip
-    a = _source(data, task={"point_dim": 6}).load()
-    b = _source(data, task={"point_dim": 6}).load()
+    a = _source(data, task={"point_dim": 6, "num_points": 16}).load()
+    b = _source(data, task={"point_dim": 6, "num_points": 16}).load()
     assert a.steps["point_cloud"].shape == (demos.num_steps, 16, 6)
     assert torch.equal(a.steps["point_cloud"], b.steps["point_cloud"])
     assert torch.equal(a.steps["action"], demos.steps["action"])
@@ -116,7 +117,7 @@ def test_errors_name_the_path_and_the_key(dp3_dir, tmp_path):
     with pytest.raises(DDPError, match="point_cloud_channels is 9 but data/point_cloud has 6 channels"):
         read_dp3_zarr(dp3_dir, point_cloud_channels=9)
     with pytest.raises(DDPError, match="task.agent_pos_dim is 7 but the data have 9"):
-        _source({"name": "dp3_zarr", "path": str(dp3_dir)}, task={"agent_pos_dim": 7}).load()
+        _source({"name": "dp3_zarr", "path": str(dp3_dir)}, task={"agent_pos_dim": 7, "num_points": 48}).load()
     with pytest.raises(RecipeError, match="keys must map point_cloud, agent_pos, action; missing action"):
         _source({"name": "dp3_zarr", "path": "x", "keys": {"point_cloud": "a", "agent_pos": "b"}})
     (tmp_path / "empty.zarr").mkdir()
@@ -131,3 +132,35 @@ def test_inconsistent_lengths_are_reported(demos, tmp_path):
     ends[-1] = int(ends[-1]) - 1
     with pytest.raises(DDPError, match=r"data/point_cloud has \d+ steps but meta/episode_ends ends at"):
         read_dp3_zarr(path)
+
+
+def test_clouds_are_sampled_to_the_recipes_point_count(dp3_dir, demos):
+    # data.num_points: null samples to task.num_points (FPS), as the model is built for
+    eps = _source({"name": "dp3_zarr", "path": str(dp3_dir)}, task={"num_points": 20}).load()
+    assert eps.steps["point_cloud"].shape == (demos.num_steps, 20, 3)
+    with pytest.raises(DDPError, match=r"data.num_points \(16\) differs from task.num_points \(20\)"):
+        _source({"name": "dp3_zarr", "path": str(dp3_dir), "num_points": 16}, task={"num_points": 20}).load()
+    with pytest.raises(DDPError, match="num_points is 512 but data/point_cloud holds 48 points"):
+        _source({"name": "dp3_zarr", "path": str(dp3_dir)}).load()  # never padded
+
+
+def test_colour_clouds_train_end_to_end(dp3_dir, tiny_recipe, tmp_path):
+    """xyz+rgb clouds (point_dim 6, use_color) fit the normaliser on all six channels and train."""
+    from ddp import build
+    from ddp.errors import RecipeError
+
+    tiny_recipe.update(
+        data={"name": "dp3_zarr", "path": str(dp3_dir), "point_cloud_channels": 6},
+        encoder={"name": "dp3", "use_color": True},
+    )
+    tiny_recipe["task"].update(point_dim=6, num_points=48)
+    tiny_recipe["train"].update(max_steps=2, epochs=1)
+    del tiny_recipe["env"]
+    exp = build(tiny_recipe)
+    res = exp.train(output_dir=tmp_path, progress=False)
+    assert res.steps == 2 and math.isfinite(res.loss)
+    assert exp.model.normalizer.point_cloud_scale.shape == (6,)
+    assert not torch.equal(exp.model.normalizer.point_cloud_scale[3:], torch.ones(3))  # rgb was fitted too
+    tiny_recipe["task"]["point_dim"] = 3
+    with pytest.raises(RecipeError, match="encoder: encoder.use_color reads xyz.rgb points: set task.point_dim to 6"):
+        build(tiny_recipe)

@@ -16,9 +16,9 @@ N_POINTS = 32
 BATCH_SHAPES = [(), (3,), (2, 3)]
 
 
-def build(name: str, options: dict | None = None, agent_pos_dim: int = AGENT_POS_DIM):
+def build(name: str, options: dict | None = None, agent_pos_dim: int = AGENT_POS_DIM, point_dim: int = 3):
     plugin = get("encoder", name)
-    return plugin.factory(from_dict(plugin.config_cls, options or {}), agent_pos_dim=agent_pos_dim)
+    return plugin.factory(from_dict(plugin.config_cls, options or {}), agent_pos_dim=agent_pos_dim, point_dim=point_dim)
 
 
 def inputs(batch_shape, channels: int = 3, seed: int = 0):
@@ -112,7 +112,9 @@ def test_dp3_max_pool_is_permutation_invariant():
 
 
 def test_dp3_color_uses_six_channels():
-    enc = build("dp3", {"use_color": True})
+    with pytest.raises(ValueError, match="set task.point_dim to 6"):
+        build("dp3", {"use_color": True})  # colour needs xyz+rgb clouds
+    enc = build("dp3", {"use_color": True}, point_dim=6)
     assert enc.pointnet[0].in_features == 6
     pc, pos = inputs((2,), channels=6)
     base = enc.encode(pc, pos)
@@ -154,9 +156,9 @@ def test_config_round_trip_and_state_dict_reload(name, options):
     again = from_dict(plugin.config_cls, to_dict(cfg))
     assert again == cfg
     torch.manual_seed(0)
-    enc = plugin.factory(cfg, agent_pos_dim=AGENT_POS_DIM)
+    enc = plugin.factory(cfg, agent_pos_dim=AGENT_POS_DIM, point_dim=6)
     torch.manual_seed(1)
-    rebuilt = plugin.factory(again, agent_pos_dim=AGENT_POS_DIM)
+    rebuilt = plugin.factory(again, agent_pos_dim=AGENT_POS_DIM, point_dim=6)
     pc, pos = inputs((3,), channels=6)
     assert not torch.equal(rebuilt.encode(pc, pos), enc.encode(pc, pos))
     rebuilt.load_state_dict(enc.state_dict())

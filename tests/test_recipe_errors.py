@@ -131,9 +131,15 @@ def test_bad_override_syntax(good, override, expected):
     assert error_of(good, [override]) == expected
 
 
-def test_override_value_is_validated_against_the_file(good):
+def test_override_errors_blame_the_override_not_the_file(good):
     msg = error_of(good, ["policy.scheduler.num_inference_steps=0"])
-    assert msg.startswith(f"{good}: policy.scheduler") and "num_inference_steps" in msg
+    assert msg.startswith("--set policy.scheduler.num_inference_steps=0: policy.scheduler") and "num_inference_steps" in msg
+    msg = error_of(good, ["train.batch_size=4", "train.lrr=0.1"])
+    assert msg.startswith("--set train.lrr=0.1: train.lrr: unknown option; did you mean 'lr'?")
+    # an error in the file itself still names the file, whatever --set did elsewhere
+    bad = good.parent / "bad.yaml"
+    bad.write_text("base: good.yaml\ntrain: {epochz: 3}\n")
+    assert error_of(bad, ["policy.horizon=16"]).startswith(f"{bad}: train.epochz: unknown option")
 
 
 def test_plugin_module_that_does_not_import(tmp_path, good):
@@ -180,4 +186,4 @@ def test_exponent_without_a_dot_is_a_float(tmp_path, good):
     exp = build(p, ["world_model.weight=5e-1"])
     assert exp.recipe.train.lr == pytest.approx(3e-4) and exp.recipe.train.weight_decay == pytest.approx(1e-6)
     assert exp.recipe.world_model.weight == pytest.approx(0.5)
-    assert error_of(good, ["train.lr=3e"]).startswith(f"{good}: train.lr: expected float, got '3e'")
+    assert error_of(good, ["train.lr=3e"]).startswith("--set train.lr=3e: train.lr: expected float, got '3e'")

@@ -71,10 +71,12 @@ class DP3Encoder(KeyedModule):
     default_in_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos"}
     default_out_keys = {"latent": "latent"}
 
-    def __init__(self, config: DP3EncoderConfig, *, agent_pos_dim: int) -> None:
+    def __init__(self, config: DP3EncoderConfig, *, agent_pos_dim: int, point_dim: int = 3) -> None:
         super().__init__()
         if agent_pos_dim <= 0:
             raise ValueError(f"agent_pos_dim must be positive; got {agent_pos_dim}")
+        if config.use_color and point_dim < 6:
+            raise ValueError(f"encoder.use_color reads xyz+rgb points: set task.point_dim to 6 (got {point_dim})")
         self.config = config
         self.agent_pos_dim = agent_pos_dim
         self.point_channels = 6 if config.use_color else 3

@@ -42,7 +42,7 @@ class StateMLPEncoder(KeyedModule):
     default_in_keys = {"agent_pos": "agent_pos"}
     default_out_keys = {"latent": "latent"}
 
-    def __init__(self, config: StateMLPEncoderConfig, *, agent_pos_dim: int) -> None:
+    def __init__(self, config: StateMLPEncoderConfig, *, agent_pos_dim: int, point_dim: int = 3) -> None:
         super().__init__()
         if agent_pos_dim <= 0:
             raise ValueError(f"agent_pos_dim must be positive; got {agent_pos_dim}")

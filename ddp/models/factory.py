@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 from ddp.models.ddp_policy import DreamDiffusionPolicy
+from ddp.errors import RecipeError
 from ddp.schema import Part, Recipe
 
 
 def build_model(recipe: Recipe, parts: dict[str, Part]) -> DreamDiffusionPolicy:
     task, pol, wm = recipe.task, recipe.policy, recipe.world_model
-    encoder = parts["encoder"].build(agent_pos_dim=task.agent_pos_dim)
+    try:
+        encoder = parts["encoder"].build(agent_pos_dim=task.agent_pos_dim, point_dim=task.point_dim)
+    except ValueError as err:
+        raise RecipeError(str(err), key="encoder") from None
     latent = encoder.out_dim
     policy_net = parts["policy.denoiser"].build(input_dim=task.action_dim, global_cond_dim=pol.obs_steps * latent)
     wm_net = wm_sched = None

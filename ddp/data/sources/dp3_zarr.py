@@ -58,7 +58,9 @@ class DP3ZarrConfig:
     Attributes:
         path: the ``.zarr`` directory (e.g. DP3's ``data/metaworld_button-press_expert.zarr``).
         point_cloud_channels: channels kept per point (3 = xyz; 6 = xyz + rgb, if stored).
-        num_points: down-sample each cloud to this many points (null: keep the stored ones).
+        num_points: down-sample each cloud to this many points (null: ``task.num_points``, the
+            count the model is built for; a value that differs from it is refused). Fewer stored
+            points than that is an error: clouds are never padded.
         subsample: ``"fps"`` (farthest point sampling from the first point, on xyz) or
             ``"random"`` (a seeded random subset per frame); both deterministic.
         subsample_seed: seed of ``"random"``.
@@ -242,11 +244,17 @@ class DP3Zarr:
 
     def load(self) -> Episodes:
         cfg = self.cfg
+        num_points = cfg.num_points
+        if self.task is not None:
+            if num_points is not None and num_points != self.task.num_points:
+                raise DDPError(f"data.num_points ({num_points}) differs from task.num_points "
+                               f"({self.task.num_points}): the model would train on other clouds than it sees")
+            num_points = self.task.num_points  # the paper's FPS down to the recipe's count
         episodes = read_dp3_zarr(
             self.path,
             keys=cfg.keys,
             point_cloud_channels=cfg.point_cloud_channels,
-            num_points=cfg.num_points,
+            num_points=num_points,
             subsample=cfg.subsample,
             subsample_seed=cfg.subsample_seed,
         )

@@ -67,6 +67,7 @@ def check_task(episodes: Episodes, task, where: str) -> None:
         "action_dim": steps["action"].shape[-1],
         "agent_pos_dim": steps["agent_pos"].shape[-1],
         "point_dim": steps["point_cloud"].shape[-1],
+        "num_points": steps["point_cloud"].shape[-2],
     }
     bad = [f"task.{k} is {getattr(task, k)} but the data have {v}" for k, v in got.items() if getattr(task, k) != v]
     if bad:

@@ -1,0 +1,68 @@
+"""Stopping signals during training: SIGTERM and SIGHUP end a run like Ctrl-C, with a checkpoint.
+
+A cluster scheduler sends SIGTERM (or SIGHUP) before it preempts a job.
+:func:`stop_signals` turns them into :class:`Preempted`, a ``KeyboardInterrupt``
+subclass, so the trainer's Ctrl-C path writes its checkpoint. While a
+checkpoint is being written, :func:`signals_deferred` holds SIGINT, SIGTERM
+and SIGHUP back (a second Ctrl-C during the save is noted, not raised into the
+middle of the write) and reports what arrived once the file is complete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import threading
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
+
+
+class Preempted(KeyboardInterrupt):
+    """Training was stopped by a signal (SIGTERM, SIGHUP); a checkpoint was written."""
+
+    def __init__(self, signum: int):
+        self.signum = signum
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+
+
+def _main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _raise_preempted(signum, frame):
+    raise Preempted(signum)
+
+
+@contextlib.contextmanager
+def stop_signals():
+    """Within the block, SIGTERM and SIGHUP raise :class:`Preempted` (main thread only)."""
+    if not _main_thread():
+        yield
+        return
+    previous = {s: signal.signal(s, _raise_preempted) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+@contextlib.contextmanager
+def signals_deferred(received: list[int] | None = None):
+    """Within the block, SIGINT / SIGTERM / SIGHUP are recorded in ``received`` instead of acting."""
+    received = [] if received is None else received
+    if not _main_thread():
+        yield received
+        return
+    signals = (signal.SIGINT, *STOP_SIGNALS)
+    previous = {s: signal.signal(s, lambda signum, frame: received.append(signum)) for s in signals}
+    try:
+        yield received
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def interruption(signum: int) -> KeyboardInterrupt:
+    """The exception a deferred signal stands for."""
+    return KeyboardInterrupt() if signum == signal.SIGINT else Preempted(signum)
