@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import os
 import pickle
+import re
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -46,10 +48,19 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
-        data = torch.load(path, map_location=map_location, weights_only=True)
+        with warnings.catch_warnings():  # torch warns about pickle protocols before refusing: the error says it
+            warnings.simplefilter("ignore")
+            data = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise CheckpointError(f"{path}: refused to load (not plain tensors/containers): {first}") from None
+        text = " ".join(str(err).split())
+        found = re.search(r"Unsupported global: GLOBAL (\S+)", text) or re.search(r"Trying to load [^.]*", text)
+        if found is None:  # not a pickle of objects at all: damaged or foreign bytes
+            op = re.search(r"Unsupported operand \d+", text)
+            raise CheckpointError(f"{path}: not a readable checkpoint (truncated or foreign file?): "
+                                  f"{op.group(0) if op else type(err).__name__}") from None
+        what = found.group(1) if found.re.groups else found.group(0)
+        raise CheckpointError(f"{path}: refused to load: it holds Python objects ({what}), not only tensors and "
+                              "containers; loading never runs a checkpoint's code") from None
     except Exception as err:  # noqa: BLE001 - torch raises many types on damaged files
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise CheckpointError(f"{path}: not a readable checkpoint (truncated or foreign file?): {first}") from None

@@ -68,13 +68,17 @@ def coerce(value: Any, tp: Any, key: str, source: str | None) -> Any:
             if type(None) in args:
                 return None
             raise fail()
+        value_errors = []
         for arg in args:
             if arg is type(None):
                 continue
             try:
                 return coerce(value, arg, key, source)
-            except RecipeError:
-                continue
+            except RecipeError as err:
+                if err.reason.startswith("must be"):  # the type fits but the value does not (e.g. NaN)
+                    value_errors.append(err)
+        if value_errors:
+            raise value_errors[0]
         raise fail()
     if origin in (list, tuple):
         if not isinstance(value, (list, tuple)):

@@ -175,7 +175,7 @@ def get(kind: str, name: str, *, source: str | None = None, key: str | None = No
         return table[name]
     near = closest(name, table)
     hint = f"; did you mean {' or '.join(repr(n) for n in near)}?" if near else ""
-    failed = f" (plugins that failed to import: {', '.join(_failed)})" if _failed else ""
+    failed = f" (plugins that failed to import: {'; '.join(f'{n}: {m}' for n, m in _failed.items())})" if _failed else ""
     raise RecipeError(
         f"unknown {kind} '{name}'{hint} (known: {', '.join(sorted(table)) or 'none'}){failed}",
         source=source,
