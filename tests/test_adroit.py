@@ -335,3 +335,14 @@ def test_paper_protocols_run_and_displacement_is_refused(tmp_path):
         assert report["protocols"][name]["episodes"] == 1
     with pytest.raises(RecipeError, match="env 'adroit' does not support displacement"):
         exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path, progress=False)
+
+
+def test_nonfinite_actions_are_refused(make_env):
+    from ddp.safety import NonFiniteError
+
+    env = make_env(task="pen", image_size=32, num_points=64)
+    td = env.reset()
+    action = torch.zeros(env.action_spec.shape)
+    action[5] = float("nan")
+    with pytest.raises(NonFiniteError, match="adroit env: refused a non-finite action"):
+        _step(env, td, action)

@@ -90,6 +90,15 @@ def test_control_clips_translation_rotation_and_workspace():
     assert backend.grip == [True]  # the gripper is commanded only when it changes
     ap = agent_pos(pos, quat, 0.04)
     assert ap.shape == (15,) and np.linalg.norm(ap[3:6] - ap[6:9]) == pytest.approx(0.04)
+    # a NaN gripper command would read as "open" (NaN > 0 is False): refused, nothing sent
+    from ddp.safety import NonFiniteError
+
+    moves = len(backend.moves)
+    with pytest.raises(NonFiniteError, match="franka control: refused a non-finite action"):
+        ctl.step([0, 0, 0, 0, 0, 0, float("nan")])
+    with pytest.raises(NonFiniteError, match="franka control: refused a non-finite end-effector shift"):
+        ctl.shift([0.0, float("nan"), 0.0])
+    assert len(backend.moves) == moves and backend.grip == [True]
 
 
 # ------------------------------------------------------------------------------------- with the simulator

@@ -278,3 +278,15 @@ def test_obs_every_renders_only_consumed_steps(make_env):
             rendered.append(t)
         prev = td["point_cloud"].clone()
     assert rendered == [3, 4, 7, 8, 11, 12]
+
+
+def test_nonfinite_actions_and_shifts_are_refused(make_env):
+    from ddp.safety import NonFiniteError
+
+    env = make_env(task="button-press", image_size=32, num_points=64)
+    td = env.reset()
+    with pytest.raises(NonFiniteError, match="metaworld env: refused a non-finite action"):
+        _step(env, td, [0.0, 0.0, float("nan"), 0.0])
+    with pytest.raises(NonFiniteError, match="metaworld env: refused a non-finite end-effector shift"):
+        env.shift_end_effector([float("inf"), 0.0, 0.0])
+    _step(env, td, [0.0, 0.0, 0.0, 0.0])  # still usable
