@@ -81,7 +81,8 @@ def cmd_train(args) -> int:
     res = exp.train(output_dir=args.output_dir, resume=not args.no_resume, progress=not args.quiet)
     print(
         f"trained {res.steps} steps ({res.epochs} epochs) in {res.seconds:.1f} s, {res.samples_per_second:.0f} samples/s; "
-        f"loss {res.loss:.4f} (bc {res.loss_bc:.4f}, wm {res.loss_wm:.4f}); checkpoint {res.checkpoint}"
+        f"loss {res.loss:.4f} (bc {res.loss_bc:.4f}, lambda*wm {res.loss_wm:.4f}, L_WM {res.wm_error:.4f}); "
+        f"checkpoint {res.checkpoint}"
     )
     return 0
 

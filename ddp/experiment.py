@@ -51,6 +51,9 @@ class Experiment:
 
     def dataset(self):
         """The recipe's data source plugin (``data.name``)."""
+        if self.parts.get("data") is None:
+            raise RecipeError("this recipe has no data section: name the demonstrations' source, e.g. "
+                              "data: {name: metaworld_expert} (ddp list dataset)", source=self.source, key="data")
         return self.parts["data"].build(task=self.recipe.task, seed=self.recipe.seed, env=self.parts.get("env"))
 
     def make_env(self, seed: int | None = None, **overrides):

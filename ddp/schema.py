@@ -193,7 +193,7 @@ class Recipe:
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
     ema: EMAConfig = field(default_factory=EMAConfig)
-    data: dict = field(default_factory=lambda: {"name": "synthetic_reach"})
+    data: dict | None = None  # the demonstrations' source plugin; training without one is an error
     train: TrainConfig = field(default_factory=TrainConfig)
     env: dict | None = None  # the environment plugin (evaluation, demo generation)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
@@ -215,7 +215,7 @@ PART_SECTIONS: dict[str, str] = {
 }
 
 #: plugin sections that may be null
-OPTIONAL_SECTIONS = {"env", "controller.tracker"}
+OPTIONAL_SECTIONS = {"env", "data", "controller.tracker"}
 
 
 @dataclass

@@ -103,7 +103,8 @@ class TrainResult:
     epochs: int
     loss: float
     loss_bc: float
-    loss_wm: float
+    loss_wm: float  # lambda * L_WM (the loss_* terms sum to the objective)
+    wm_error: float  # L_WM unweighted
     seconds: float
     samples_per_second: float
     checkpoint: Path
@@ -179,7 +180,7 @@ class Trainer:
                 trim_csv_logs(self.output_dir, step)  # rows a killed run logged after its last checkpoint
         logger = self._logger()
         loss_fn = torch.compile(model.loss) if cfg.compile else model.loss
-        sums = {"loss": 0.0, "loss_bc": 0.0, "loss_wm": 0.0}
+        sums = {"loss": 0.0, "loss_bc": 0.0, "loss_wm": 0.0, "wm_error": 0.0}
         count, last_means = 0, dict(sums)
         t0, samples = time.perf_counter(), 0
         bar = tqdm(total=total, initial=step, disable=not self.progress, desc=exp.recipe.name, unit="step")
@@ -217,7 +218,8 @@ class Trainer:
                     with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
                         losses = loss_fn(batch, generator=noise)
                     optimizer.zero_grad(set_to_none=True)
-                    losses["loss"].backward()
+                    # the objective is the sum of the loss_* terms (TorchRL's convention)
+                    sum(losses[k] for k in losses.keys() if k.startswith("loss_")).backward()
                     if cfg.grad_clip_norm:
                         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
                     optimizer.step()
@@ -257,6 +259,7 @@ class Trainer:
         final = {k: v / count for k, v in sums.items()} if count else last_means
         return TrainResult(
             steps=step, epochs=epoch, loss=final["loss"], loss_bc=final["loss_bc"], loss_wm=final["loss_wm"],
+            wm_error=final["wm_error"],
             seconds=seconds, samples_per_second=samples / max(seconds, 1e-9), checkpoint=path,
         )
 

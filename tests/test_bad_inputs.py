@@ -128,6 +128,8 @@ CASES = [
     ("train-missing-data", lambda t, tr: ["train", write(t / "r.yaml", {**tiny(train={"output_dir": str(t / "o")}),
                                                                          "data": {"name": "episodes_dir", "path": str(t / "none")}})],
      "none does not exist"),
+    ("train-without-data", lambda t, tr: ["train", write(t / "r.yaml", {**tiny(train={"output_dir": str(t / "o")}), "data": None})],
+     "data: this recipe has no data section"),
     ("resume-changed-lr", lambda t, tr: ["train", copy_run(tr, t)[0], "--set", "train.lr=0.003"],
      "cannot resume: the recipe differs from the run's (train.lr: 0.001 -> 0.003)"),
     ("resume-other-recipe", lambda t, tr: ["train", write(t / "o.yaml", tiny(name="other", train={"output_dir": copy_run(tr, t)[1].as_posix()}))],

@@ -27,7 +27,7 @@ def exp(tiny_recipe):
 
 def test_loss_terms_and_total(exp):
     out = exp.model.loss(batch_of(exp), generator=torch.Generator().manual_seed(1))
-    assert set(out.keys()) == {"loss", "loss_bc", "loss_wm"}
+    assert set(out.keys()) == {"loss", "loss_bc", "loss_wm", "wm_error"}
     assert torch.allclose(out["loss"], out["loss_bc"] + 1.0 * out["loss_wm"])
     assert out["loss_bc"] > 0 and out["loss_wm"] > 0
 
@@ -36,7 +36,10 @@ def test_world_model_weight_scales_the_total(tiny_recipe):
     tiny_recipe["world_model"]["weight"] = 0.25
     e = build(tiny_recipe)
     out = e.model.loss(batch_of(e), generator=torch.Generator().manual_seed(1))
-    assert torch.allclose(out["loss"], out["loss_bc"] + 0.25 * out["loss_wm"])
+    # TorchRL's convention: the loss_* keys sum to the objective, so loss_wm carries lambda
+    objective = sum(out[k] for k in out.keys() if k.startswith("loss_"))
+    assert torch.allclose(out["loss"], objective) and torch.allclose(out["loss"], out["loss_bc"] + 0.25 * out["wm_error"])
+    assert torch.allclose(out["loss_wm"], 0.25 * out["wm_error"]) and not out["wm_error"].requires_grad
 
 
 def _encoder_grad(model, loss):

@@ -209,6 +209,10 @@ def prepare_demos(
         overrides.append(f"data.episodes={int(episodes)}")
     data, source = load_recipe(recipe, overrides)
     rec, parts, _ = validate(data, source)
+    if parts.get("data") is None:
+        from ddp.errors import RecipeError
+
+        raise RecipeError("this recipe has no data section (ddp list dataset)", source=source, key="data")
     src = parts["data"].build(task=rec.task, seed=rec.seed, env=parts.get("env"))
     if callable(getattr(src, "prepare", None)):
         return src.prepare(progress=progress, regenerate=regenerate)

@@ -80,7 +80,10 @@ class DreamDiffusionPolicy(KeyedModule):
 
     # ------------------------------------------------------------------ training (Algorithm 1)
     def loss(self, batch: TensorDict, generator: torch.Generator | None = None) -> TensorDict:
-        """``loss_bc``, ``loss_wm`` and ``loss`` = loss_bc + lambda * loss_wm.
+        """The objective's terms, TorchRL style: the ``loss_*`` keys sum to the objective.
+
+        ``loss_bc`` = L_BC, ``loss_wm`` = lambda * L_WM (weighted), ``loss`` = their sum, and the
+        detached diagnostic ``wm_error`` = L_WM unweighted (comparable across lambdas).
 
         ``batch`` holds windows: ``point_cloud`` [B, T, P, C], ``agent_pos``
         [B, T, D] with T >= M + N (T >= M without a world model) and
@@ -119,12 +122,13 @@ class DreamDiffusionPolicy(KeyedModule):
             loss_wm = self.world_model_scheduler.loss(
                 lambda x, t: self.world_model_net.predict(x, t, executed, history_cond), future, generator=generator
             )
-            out["loss_wm"] = loss_wm
-            # 5. L_total = L_BC + lambda * L_WM
-            out["loss"] = loss_bc + self.world_model_weight * loss_wm
+            # 5. L_total = L_BC + lambda * L_WM: the weighted term is the loss_* key
+            out["loss_wm"] = self.world_model_weight * loss_wm
+            out["wm_error"] = loss_wm.detach()
         else:
             out["loss_wm"] = torch.zeros_like(loss_bc)
-            out["loss"] = loss_bc
+            out["wm_error"] = torch.zeros_like(loss_bc).detach()
+        out["loss"] = sum(v for k, v in out.items() if k.startswith("loss_"))
         return TensorDict(out, batch_size=[])
 
     # ------------------------------------------------------------------ inference
