@@ -1,8 +1,9 @@
 """One registry per kind of part, filled by ``@register`` and by entry points.
 
 Built-in parts live in the package named after their kind (``ddp.encoders``,
-``ddp.schedulers``, ...): that package is imported the first time its kind is
-looked up, and it imports every module inside it. Third-party packages add
+``ddp.schedulers``, ...): the modules of that package are imported the first
+time its kind is looked up (importing ``ddp.evaluate`` or ``ddp.envs.chunked``
+loads no simulator). Third-party packages add
 parts through the entry-point group ``ddp.plugins`` (each entry point names a
 module to import); those are loaded lazily on the first lookup of any kind.
 Nothing is imported by a ``_target_`` string.
@@ -100,7 +101,10 @@ def _load_builtins(kind: str) -> None:
     if kind in _builtins_loaded:
         return
     _builtins_loaded.add(kind)
-    importlib.import_module(KINDS[kind][0])
+    from ddp._autoload import import_submodules
+
+    package = importlib.import_module(KINDS[kind][0])
+    import_submodules(package.__name__, package.__path__)  # each module registers its parts
 
 
 def load_entry_points(force: bool = False) -> dict[str, str]:

@@ -112,3 +112,17 @@ def test_entry_point_plugins_are_discovered_and_failures_named(tmp_path):
     assert "ddp plugin 'broken' (ddp_broken_plugin) failed to import: ImportError: needs libfoo" in out
     assert "CFG NoisyConfig" in out
     assert "did you mean 'noisy_threshold'" in out and "failed to import: broken" in out
+
+
+def test_importing_evaluation_loads_no_env_plugin_or_simulator():
+    """Plugins are imported on their kind's first lookup, not by importing ddp.evaluate or the env base."""
+    import subprocess
+    import sys
+
+    code = ("import sys, ddp.evaluate, ddp.envs.chunked; print(' '.join(sorted(m for m in sys.modules if m.startswith("
+            "('metaworld', 'robosuite', 'gymnasium_robotics', 'franky', 'ddp.envs.', 'ddp.detectors.', 'ddp.trackers.')))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.split() == ["ddp.envs.chunked"]
+    code = "import sys; from ddp import registry; registry.get('env', 'synthetic_reach'); print('ddp.envs.metaworld' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.strip() == "True"  # the first env lookup loads the built-in env modules

@@ -1,5 +1,1 @@
-"""Built-in denoiser parts; every module here registers itself on import."""
-
-from ddp._autoload import import_submodules
-
-import_submodules(__name__, __path__)
+"""Built-in denoiser parts: the registry imports every module here (each registers itself) on the kind's first lookup."""
