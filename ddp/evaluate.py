@@ -15,6 +15,7 @@ from tqdm.auto import tqdm
 from ddp.envs.chunked import ChunkedEnv, chunk_render_config
 from ddp.errors import RecipeError
 from ddp import results_json
+from ddp.contracts import Calibratable
 from ddp.protocols import PROTOCOLS, Protocol, check_protocols
 from ddp.video import VideoSettings
 
@@ -210,7 +211,7 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
         proto = PROTOCOLS[name]
         overrides = _env_overrides(exp, proto, cfg.max_steps)
         ctrl = exp.make_controller(detector=proto.detector, imagine=proto.imagine, tracker=proto.tracker)
-        if hasattr(ctrl.detector, "calibrate") and ctrl.detector.tau is None:
+        if isinstance(ctrl.detector, Calibratable) and ctrl.detector.needs_calibration:
             if calibration is None:
                 calibrate_tau(exp, ctrl.detector, episodes=cfg.calibration_episodes, seed=seed + 100_000,
                               num_envs=num_envs, progress=progress, parallel=parallel)
@@ -224,13 +225,14 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
         res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=overrides, num_envs=num_envs,
                                desc=name, progress=progress, parallel=parallel, video=vid)
         rate = float(np.mean([r["success"] for r in res]))
+        thresholds = ctrl.detector.calibration() if isinstance(ctrl.detector, Calibratable) else {}
         report["protocols"][name] = {
             "success_rate": rate,
             "successes": int(sum(r["success"] for r in res)),
             "episodes": len(res),
             "seconds": time.perf_counter() - t0,
-            "tau": getattr(ctrl.detector, "tau", None),
-            "tau_per_chunk": getattr(ctrl.detector, "tau_per_chunk", None),
+            "tau": thresholds.get("tau"),
+            "tau_per_chunk": thresholds.get("tau_per_chunk"),
             "per_episode": res,
         }
         if vid is not None:

@@ -122,13 +122,10 @@ class Experiment:
 
         c = self.recipe.controller
         env_part = self.parts.get("env")
-        hold = getattr(env_part.plugin.factory, "action_hold", None) if env_part is not None else None
+        hold = env_part.plugin.factory.action_hold if env_part is not None else None  # the env contract's
         if c.on_nonfinite == "hold" and hold is None:
-            from ddp.errors import RecipeError
-
-            what = f"env '{env_part.plugin.name}' declares no action_hold" if env_part else "the recipe has no env"
-            raise RecipeError(f"'hold' needs to know how the env holds still, but {what}", source=self.source,
-                              key="controller.on_nonfinite")
+            raise RecipeError("'hold' needs to know how the env holds still (its action_hold), but the recipe "
+                              "has no env", source=self.source, key="controller.on_nonfinite")
         det_part = self.parts["controller.detector"]
         if detector is not None:
             det_part = resolve_part("detector", detector, key="controller.detector", source="<protocol>")

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import torch
 from tensordict import TensorDictBase
 
+from ddp.contracts import check as check_contract
 from ddp.keys import KeyedModule
 from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite_parameter
 
@@ -91,12 +92,18 @@ class DDPController(KeyedModule):
         num_points: int | None = None,
     ):
         super().__init__()
+        for kind, part in (("detector", detector), ("tracker", tracker), ("recovery", recovery)):
+            if part is not None:  # parts built in code, not from a recipe, are held to their contracts here
+                check_contract(kind, part, name=type(part).__name__, module=type(part).__module__)
+        for sub in subtasks or []:
+            if sub.trigger is not None:
+                check_contract("trigger", sub.trigger, name=type(sub.trigger).__name__)
         if on_nonfinite not in ("raise", "hold"):
             raise ValueError(f"on_nonfinite must be 'raise' or 'hold'; got {on_nonfinite!r}")
         bad = first_nonfinite_parameter(model)
         if bad is not None:
             raise NonFiniteError(f"the model's '{bad}' holds NaN or inf: it cannot drive a robot")
-        if getattr(detector, "needs_discrepancy", False) and not model.has_world_model:
+        if detector.needs_discrepancy and not model.has_world_model:
             raise ValueError("the discrepancy detector needs a world model (world_model.enabled is false)")
         if imagine and not model.has_world_model:
             imagine = False  # the DP3 ablation: tracking without imagination
@@ -122,13 +129,13 @@ class DDPController(KeyedModule):
     def reset(self) -> None:
         self.states: list[EnvState] = []
         self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
-        for part in (self.detector, self.tracker, self.recovery):
-            if part is not None and hasattr(part, "reset"):
+        for part in (self.detector, self.tracker, self.recovery):  # each contract has reset()
+            if part is not None:
                 part.reset()
 
     # ------------------------------------------------------------------ helpers
     def _trigger(self, s: EnvState):
-        if self.recovery is not None and getattr(self.recovery, "trigger_chunk", None) is not None:
+        if self.recovery is not None and self.recovery.trigger_chunk is not None:
             return ("chunk", self.recovery.trigger_chunk)
         return self.subtasks[s.subtask].trigger if s.subtask < len(self.subtasks) else None
 
@@ -204,22 +211,24 @@ class DDPController(KeyedModule):
         # a non-finite observation, or latents that came out non-finite, are not reality: OOD
         finite = finite & torch.isfinite(real).flatten(1).all(1).cpu()
         ee_shift = torch.zeros(B, 3)
-        if self.forecast_every_cycle or getattr(self.detector, "needs_discrepancy", False):
+        if self.forecast_every_cycle or self.detector.needs_discrepancy:
             self._forecast(list(range(B)))
         discrepancy = torch.tensor(
             [self._discrepancy(real[b], self.states[b]) if finite[b] else float("inf") for b in range(B)]
         )
         td.set(self.key("discrepancy"), discrepancy)
 
-        if ("privileged", "displacement") in td.keys(True):
-            num_objects = td.get(("privileged", "displacement")).shape[-2]
-        else:
-            num_objects = 0
+        # Delta p_C per tracked object [B, K, 3]: the tracker's output sizes the object masks (K = 0 without one)
+        offsets = self.tracker(td).get(self.tracker.key("offsets")) if self.tracker is not None else None
+        if offsets is not None:  # an offset the tracker could not measure is no displacement
+            offsets = torch.nan_to_num(offsets.cpu(), nan=0.0, posinf=0.0, neginf=0.0)
+        num_objects = offsets.shape[-2] if offsets is not None else 0
         for s in self.states:
             if s.recovered is None:
                 s.recovered = torch.zeros(num_objects, dtype=torch.bool)
-        # objects recovered before this cycle (a recovery below is only observable from the next one)
-        td.set(("ddp", "recovered"), torch.stack([s.recovered.clone() for s in self.states]))
+        if offsets is not None:
+            # objects recovered before this cycle (a recovery below is only observable from the next one)
+            td.set(("ddp", "recovered"), torch.stack([s.recovered.clone() for s in self.states]))
 
         # 3. Target-specific recovery at the end of a subtask (checked on the latest observation)
         for b, s in enumerate(self.states):
@@ -236,11 +245,8 @@ class DDPController(KeyedModule):
             s.subtask, s.subtask_start = s.subtask + 1, chunk_index[b]
 
         # 1. OOD detection & tracking
-        ood_now = self.detector(td).get(("ddp", "ood")).reshape(B).tolist()
+        ood_now = self.detector(td).get(self.detector.key("ood")).reshape(B).tolist()
         ood_now = [bool(o) or not bool(finite[b]) for b, o in enumerate(ood_now)]  # non-finite input: OOD
-        offsets = self.tracker(td).get(("ddp", "offsets")) if self.tracker is not None else None
-        if offsets is not None:  # an offset the tracker could not measure is no displacement
-            offsets = torch.nan_to_num(offsets.cpu(), nan=0.0, posinf=0.0, neginf=0.0)
         for b, s in enumerate(self.states):
             if not s.ood and ood_now[b] and (self.detector.sticky or s.has_forecast or not finite[b]):
                 s.ood = True  # OOD_Mode <- True

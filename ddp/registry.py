@@ -72,7 +72,9 @@ def register(kind: str, name: str, *, config: type | None = None):
     """Class decorator: ``@register("detector", "discrepancy")``.
 
     The config dataclass is ``config`` or the decorated class's ``Config``
-    attribute. Registering a name twice in one kind raises ``PluginError``.
+    attribute. A class is held against its kind's contract (:mod:`ddp.contracts`):
+    a missing member is one ``PluginError`` line. Registering a name twice in
+    one kind raises ``PluginError``.
     """
     _check_kind(kind)
 
@@ -80,6 +82,10 @@ def register(kind: str, name: str, *, config: type | None = None):
         cfg = config if config is not None else getattr(obj, "Config", None)
         if cfg is None or not dataclasses.is_dataclass(cfg):
             raise PluginError(f"{kind} '{name}' ({obj.__module__}) must declare a config dataclass")
+        if isinstance(obj, type):
+            from ddp.contracts import check
+
+            check(kind, obj, name=name, module=obj.__module__)
         existing = _REGISTRY[kind].get(name)
         if existing is not None:
             raise PluginError(

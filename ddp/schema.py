@@ -226,7 +226,12 @@ class Part:
     config: Any
 
     def build(self, **context):
-        return self.plugin.factory(self.config, **context)
+        """The part, checked against its kind's contract (a factory function is only checkable here)."""
+        from ddp.contracts import check
+
+        part = self.plugin.factory(self.config, **context)
+        check(self.plugin.kind, part, name=self.plugin.name, module=self.plugin.module)
+        return part
 
     def as_dict(self) -> dict:
         return {"name": self.plugin.name, **to_dict(self.config)}

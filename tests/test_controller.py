@@ -252,6 +252,9 @@ def test_object_hidden_at_ood_entry_is_tracked_once_seen(exp):
         def reset(self):
             self.calls = 0
 
+        def key(self, role):
+            return ("ddp", role)
+
     ctrl = exp.make_controller()
     ctrl.tracker = LateTracker()
     r = rollout(exp, ctrl)

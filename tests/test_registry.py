@@ -9,6 +9,7 @@ import pytest
 
 import ddp
 from ddp import registry
+from ddp.detectors.never import NeverDetector
 from ddp.errors import PluginError, RecipeError
 
 
@@ -28,13 +29,10 @@ def test_register_lookup_and_duplicate():
 
     try:
         @ddp.register("detector", "test_threshold")
-        class Threshold:
+        class Threshold(NeverDetector):
             """A test detector."""
 
             Config = Cfg
-
-            def __init__(self, config):
-                self.config = config
 
         plugin = registry.get("detector", "test_threshold")
         assert plugin.factory is Threshold and plugin.config_cls is Cfg and plugin.summary == "A test detector."
@@ -75,16 +73,15 @@ def test_entry_point_plugins_are_discovered_and_failures_named(tmp_path):
         """
         from dataclasses import dataclass
         import ddp
+        from ddp.detectors.never import NeverDetector
 
         @dataclass
         class NoisyConfig:
             sigma: float = 0.5
 
         @ddp.register("detector", "noisy_threshold", config=NoisyConfig)
-        class NoisyThreshold:
+        class NoisyThreshold(NeverDetector):
             '''Flags OOD at random (an entry-point test plugin).'''
-            def __init__(self, config):
-                self.config = config
         """,
         "noisy",
     )

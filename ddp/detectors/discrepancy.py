@@ -56,6 +56,11 @@ class DiscrepancyDetector(KeyedModule):
         self.tau = config.tau
         self.tau_per_chunk: list[float] | None = None  # set by a per_chunk calibration
 
+    @property
+    def needs_calibration(self) -> bool:
+        """No threshold yet (``tau: null``): ``ddp eval`` calibrates it from ID rollouts."""
+        return self.tau is None
+
     def calibrate(self, values, chunks=None) -> float:
         """Set tau from D_R-I values observed in ID rollouts; return the global tau.
 

@@ -285,7 +285,7 @@ class AdroitEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
         """The seed of the current episode's reset."""
         return self._seed
 
-    def shift_end_effector(self, delta, **kwargs):
+    def shift_end_effector(self, delta, *, safe_lift: float = 0.0):
         """Not supported: Adroit has no displacement protocol (the paper evaluates it in distribution)."""
         raise DDPError(
             "the adroit env has no end-effector shift (Adroit has no displacement protocol); "

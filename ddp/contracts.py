@@ -1,0 +1,206 @@
+"""One declared contract per plugin kind: what core code calls, and nothing else.
+
+Each contract is a ``typing.Protocol``: its annotated attributes and its public
+methods are what a part of that kind must provide. :func:`check` holds a class
+(at ``@register``) or a built instance (when a recipe builds it) against its
+kind's contract and raises one :class:`~ddp.errors.PluginError` line naming
+the first missing member, or a method whose parameters cannot take the call
+core makes. Core code calls only these members, never a probe with getattr.
+
+TensorDict keys: detectors and trackers are TensorDict modules whose keys are
+named by role (``key(role)``, renamable with ``set_keys``): a detector writes
+its ``"ood"`` role ([B] bool), a tracker its ``"offsets"`` role ([B, K, 3]
+metres per tracked object; K is how many objects the controller tracks).
+What they read is theirs to declare in ``in_keys`` (the controller writes
+``("ddp", "discrepancy")`` [B], ``("ddp", "recovered")`` [B, K] and passes
+the env's observation through).
+"""
+
+from __future__ import annotations
+
+import inspect
+import typing
+from typing import Any, Protocol, runtime_checkable
+
+import torch
+
+from ddp.errors import PluginError
+
+
+class Encoder(Protocol):
+    """Built as ``factory(config, agent_pos_dim=D, point_dim=C)``; E_psi."""
+
+    out_dim: int  # latent size per observation step
+
+    def encode(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
+        """``[*, P, C], [*, D] -> [*, out_dim]``."""
+
+
+class Denoiser(Protocol):
+    """Built as ``factory(config, input_dim=, global_cond_dim=[, local_cond_dim=])``."""
+
+    def predict(self, sample, timestep, global_cond, local_cond=None) -> torch.Tensor:
+        """The network's prediction for ``sample`` [B, T, input_dim] at ``timestep``."""
+
+
+class Scheduler(Protocol):
+    """A diffusion / flow process: the training loss and the sampling loop."""
+
+    def loss(self, model_fn, x0, *, generator=None) -> torch.Tensor: ...
+
+    def sample(self, model_fn, noise, *, generator=None) -> torch.Tensor: ...
+
+
+class Dataset(Protocol):
+    """Built as ``factory(config, task=, seed=, env=)``; the demonstrations."""
+
+    def load(self) -> Any:
+        """The demonstrations as :class:`ddp.data.episodes.Episodes`."""
+
+
+class Detector(Protocol):
+    """Decides OOD per environment: writes its ``"ood"`` key role ([B] bool)."""
+
+    sticky: bool  # True: once OOD, stay until recovery and a D_R-I re-check; False: re-decided every cycle
+    needs_discrepancy: bool  # True: the controller must forecast every cycle so D_R-I exists
+
+    def forward(self, td): ...
+
+    def key(self, role: str): ...
+
+    def reset(self) -> None: ...
+
+
+@runtime_checkable
+class Calibratable(Protocol):
+    """A detector whose threshold is calibrated from ID rollouts (``ddp eval`` does it when it is unset)."""
+
+    needs_calibration: bool
+
+    def calibrate(self, values, chunks=None) -> float: ...
+
+    def calibration(self) -> dict: ...
+
+    def load_calibration(self, calibration: dict) -> None: ...
+
+
+class Tracker(Protocol):
+    """How far each tracked object moved: writes its ``"offsets"`` key role ([B, K, 3])."""
+
+    def forward(self, td): ...
+
+    def key(self, role: str): ...
+
+    def reset(self) -> None: ...
+
+
+class Recovery(Protocol):
+    """Undoes a tracking shift at a subtask's end."""
+
+    trigger_chunk: int | None  # None: the subtasks' triggers end subtasks; an int overrides them (a fixed chunk)
+
+    def recover(self, offsets, displaced, target) -> tuple:
+        """``(ee_shift [3], recovered mask [K])`` for the objects in ``displaced`` (and the subtask's target)."""
+
+    def reset(self) -> None: ...
+
+
+class Trigger(Protocol):
+    """When a subtask has ended."""
+
+    def fired(self, obs, chunk_index: int, subtask_chunks: int) -> bool: ...
+
+
+class Env(Protocol):
+    """A TorchRL env (``EnvBase``) producing ``point_cloud`` [task.num_points, task.point_dim] and ``agent_pos``."""
+
+    action_hold: Any  # ddp.safety.HoldSpec: how its actions hold still (controller.on_nonfinite: hold)
+
+    def shift_end_effector(self, delta, *, safe_lift: float = 0.0):
+        """Move the end-effector by ``delta`` (metres, 3) outside the episode's step count; the applied shift."""
+
+    def set_seed(self, seed): ...
+
+    def reset(self, *args, **kwargs): ...
+
+    def step(self, tensordict): ...
+
+
+#: kind -> its contract
+CONTRACTS: dict[str, type] = {
+    "encoder": Encoder,
+    "denoiser": Denoiser,
+    "scheduler": Scheduler,
+    "dataset": Dataset,
+    "detector": Detector,
+    "tracker": Tracker,
+    "recovery": Recovery,
+    "trigger": Trigger,
+    "env": Env,
+}
+
+#: how core calls each method: (positional args, keyword args) that the signature must accept
+_CALLS: dict[tuple[str, str], tuple[int, tuple[str, ...]]] = {
+    ("env", "shift_end_effector"): (1, ("safe_lift",)),
+    ("recovery", "recover"): (3, ()),
+    ("trigger", "fired"): (3, ()),
+    ("encoder", "encode"): (2, ()),
+    ("dataset", "load"): (0, ()),
+    ("scheduler", "loss"): (2, ("generator",)),
+    ("scheduler", "sample"): (2, ("generator",)),
+}
+
+
+def members(contract: type) -> tuple[list[str], list[str]]:
+    """(attributes, methods) a contract declares."""
+    attributes = [n for n in typing.get_type_hints(contract) if not n.startswith("_")]
+    methods = [n for n, v in vars(contract).items() if callable(v) and not n.startswith("_")]
+    return attributes, methods
+
+
+def _accepts(fn, positional: int, keywords: tuple[str, ...]) -> bool:
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return True  # builtins without a signature: cannot tell, do not refuse
+    params = list(sig.parameters.values())
+    if params and params[0].name == "self":
+        params = params[1:]
+    if any(p.kind is p.VAR_POSITIONAL for p in params):
+        positional_ok = True
+    else:
+        positional_ok = sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) for p in params) >= positional
+    names = {p.name for p in params if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+    var_kw = any(p.kind is p.VAR_KEYWORD for p in params)
+    required_extra = [p for p in params[positional:] if p.default is p.empty
+                      and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and p.name not in keywords]
+    return positional_ok and (var_kw or all(k in names for k in keywords)) and not required_extra
+
+
+def check(kind: str, obj, *, name: str, module: str | None = None) -> None:
+    """Raise one PluginError line if ``obj`` (a class or an instance) lacks a member of ``kind``'s contract."""
+    contract = CONTRACTS.get(kind)
+    if contract is None:
+        return
+    where = f"{kind} '{name}'" + (f" ({module})" if module else "")
+    attributes, methods = members(contract)
+    is_class = isinstance(obj, type)
+    for attr in attributes:
+        if is_class:
+            present = attr in dir(obj) or attr in getattr(obj, "__annotations__", {})
+        else:
+            present = hasattr(obj, attr)
+        if not present:
+            raise PluginError(f"{where} lacks the attribute '{attr}' that the {kind} contract requires "
+                              f"(ddp.contracts.{contract.__name__})")
+    for method in methods:
+        fn = getattr(obj, method, None)
+        if not callable(fn):
+            raise PluginError(f"{where} lacks the method '{method}()' that the {kind} contract requires "
+                              f"(ddp.contracts.{contract.__name__})")
+        call = _CALLS.get((kind, method))
+        if call is not None and not _accepts(fn, *call):
+            n, kws = call
+            wanted = ", ".join([f"{n} positional argument(s)"] + [f"keyword '{k}'" for k in kws])
+            raise PluginError(f"{where}: {method}() must accept {wanted}, as core calls it "
+                              f"(ddp.contracts.{contract.__name__})")
