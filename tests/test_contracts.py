@@ -9,7 +9,7 @@ import torch
 
 import ddp
 from ddp import build, registry
-from ddp.contracts import CONTRACTS, members
+from ddp.contracts import CONTRACTS, check, members
 from ddp.errors import PluginError
 
 
@@ -45,15 +45,25 @@ def test_a_complete_class_registers_and_each_missing_member_is_named(kind):
     finally:
         registry.unregister(kind, name)
     attributes, methods = members(CONTRACTS[kind])
-    for member in attributes + methods:
+    for member in methods:  # a class lacking a method is refused at registration
         body = complete(kind)
         del body[member]
         incomplete = type(f"Without_{member}", (), body)
         with pytest.raises(PluginError) as err:
             registry.register(kind, name, config=Empty)(incomplete)
         msg = str(err.value)
-        assert f"{kind} '{name}'" in msg and f"'{member}" in msg and "\n" not in msg
+        assert f"{kind} '{name}'" in msg and f"'{member}()'" in msg and "\n" not in msg
         assert name not in registry._REGISTRY[kind]
+    for member in attributes:  # attributes may come from __init__: the built part is checked
+        body = complete(kind)
+        del body[member]
+        incomplete = type(f"Without_{member}", (), body)
+        try:
+            plugin = registry.register(kind, name, config=Empty)(incomplete)
+            with pytest.raises(PluginError, match=rf"{kind} '{name}' .*lacks the attribute '{member}'"):
+                check(kind, plugin(), name=name)
+        finally:
+            registry.unregister(kind, name)
 
 
 @pytest.mark.parametrize(
