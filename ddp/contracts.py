@@ -126,6 +126,18 @@ class Env(Protocol):
     def step(self, tensordict): ...
 
 
+class EvaluationProtocol(Protocol):
+    """What ``get_protocol`` returns: an :class:`ddp.protocols.base.EvalProtocol` (env overrides + controller)."""
+
+    env: dict
+    env_if_supported: dict
+    detector: dict | None
+    imagine: bool | None
+    tracker: bool
+    occlusion: bool
+    env_tracking: bool
+
+
 #: kind -> its contract
 CONTRACTS: dict[str, type] = {
     "encoder": Encoder,
@@ -137,6 +149,7 @@ CONTRACTS: dict[str, type] = {
     "recovery": Recovery,
     "trigger": Trigger,
     "env": Env,
+    "protocol": EvaluationProtocol,
 }
 
 #: how core calls each method: (positional args, keyword args) that the signature must accept

@@ -16,11 +16,11 @@ from ddp.envs.chunked import ChunkedEnv, chunk_render_config
 from ddp.errors import RecipeError
 from ddp import results_json
 from ddp.contracts import Calibratable
-from ddp.protocols import PROTOCOLS, Protocol, check_protocols
+from ddp.protocols.base import EvalProtocol, check_protocols, get_protocol
 from ddp.video import VideoSettings
 
 
-def _env_overrides(exp, protocol: Protocol, max_steps: int | None) -> dict:
+def _env_overrides(exp, protocol: EvalProtocol, max_steps: int | None) -> dict:
     fields = {f.name for f in dataclasses.fields(exp.parts["env"].config)}
     over = dict(exp.recipe.eval.env)
     over.update(protocol.env)
@@ -208,7 +208,7 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     report = {"recipe": exp.recipe.name, "episodes": episodes, "seed": seed, "protocols": {}}
     calibration = None  # thresholds calibrated once, on ID rollouts, for every protocol that needs them
     for name in protocols:
-        proto = PROTOCOLS[name]
+        proto = get_protocol(name)
         overrides = _env_overrides(exp, proto, cfg.max_steps)
         ctrl = exp.make_controller(detector=proto.detector, imagine=proto.imagine, tracker=proto.tracker)
         if isinstance(ctrl.detector, Calibratable) and ctrl.detector.needs_calibration:
@@ -248,7 +248,7 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
 
 def markdown_table(reports: dict[str, dict]) -> str:
     """Success rates (%) laid out like the paper's Table 1: one row per method / condition."""
-    protocols = [p for p in PROTOCOLS if any(p in r["protocols"] for r in reports.values())]
+    protocols = list(dict.fromkeys(p for r in reports.values() for p in r["protocols"]))  # first-seen order
     lines = ["| method | " + " | ".join(protocols) + " |", "|---|" + "---|" * len(protocols)]
     for name, rep in reports.items():
         cells = []

@@ -36,6 +36,7 @@ KINDS: dict[str, tuple[str, str]] = {
     "recovery": ("ddp.recovery", "undoes tracking shifts at subtask ends"),
     "trigger": ("ddp.triggers", "decides when a subtask has ended (gripper closure, timer, chunk index)"),
     "env": ("ddp.envs", "TorchRL environments (simulated or real)"),
+    "protocol": ("ddp.protocols", "evaluation conditions: env disturbances plus a controller setting"),
 }
 
 

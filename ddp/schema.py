@@ -284,7 +284,7 @@ def _env_follows_task(part: Part, section, task: TaskConfig) -> Part:
 
 def _check_cross_section(recipe: Recipe, parts: dict[str, Part], source: str | None) -> None:
     """Rules that span sections: protocol names, and the env's shapes against ``task``."""
-    from ddp.protocols import check_protocols
+    from ddp.protocols.base import check_protocols
 
     check_protocols(recipe.eval.protocols, source=source, key="eval.protocols")
     env = parts.get("env")

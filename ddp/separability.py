@@ -63,7 +63,8 @@ def separability(exp, *, episodes: int = 10, seed: int | None = None, tau: float
     when that is null too, calibrates one from ``eval.calibration_episodes`` ID episodes on seeds
     ``seed + 100000 ...`` (as ``ddp eval`` does).
     """
-    from ddp.evaluate import PROTOCOLS, _env_overrides, calibration_values, rollout_episodes
+    from ddp.evaluate import _env_overrides, calibration_values, rollout_episodes
+    from ddp.protocols.base import get_protocol
 
     if not exp.model.has_world_model:
         raise ValueError(f"{exp.recipe.name}: D_R-I needs a world model (world_model.enabled is false)")
@@ -73,7 +74,7 @@ def separability(exp, *, episodes: int = 10, seed: int | None = None, tau: float
     for name in ("id", "ood_base"):
         ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
         runs[name] = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed,
-                                      overrides=_env_overrides(exp, PROTOCOLS[name], cfg.max_steps),
+                                      overrides=_env_overrides(exp, get_protocol(name), cfg.max_steps),
                                       desc=f"D_R-I {name}", progress=progress)
     calibrated, per_chunk = False, None
     if tau is None:

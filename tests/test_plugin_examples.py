@@ -15,7 +15,7 @@ from ddp.contracts import CONTRACTS
 EXAMPLES = {  # kind -> registered name, as in the README
     "detector": "fixed_tau", "tracker": "scaled_truth", "recovery": "undo_all", "trigger": "after_chunks",
     "encoder": "mean_point", "denoiser": "mlp_denoiser", "scheduler": "one_step", "dataset": "random_walk",
-    "env": "drift",
+    "env": "drift", "protocol": "short_id",
 }
 
 
@@ -62,14 +62,16 @@ def test_a_model_made_of_the_examples_trains_and_evaluates(examples, tmp_path):
                        "recovery": {"name": "undo_all"},
                        "subtasks": [{"target": None, "trigger": {"name": "after_chunks", "chunks": 2}}]},
         "train": {"batch_size": 8, "max_steps": 3, "warmup_steps": 1, "output_dir": str(tmp_path / "run")},
-        "eval": {"episodes": 2, "protocols": ["id", "imagination_50"], "calibration_episodes": 1},
+        "eval": {"episodes": 2, "protocols": ["id", "imagination_50", "short_id"], "calibration_episodes": 1},
     }
     exp = build(recipe)
     res = exp.train(progress=False)
     assert res.steps == 3 and math.isfinite(res.loss)
     report = exp.evaluate(output_dir=tmp_path / "eval", progress=False)
-    assert set(report["protocols"]) == {"id", "imagination_50"}
+    assert list(report["protocols"]) == ["id", "imagination_50", "short_id"]
     assert all(p["episodes"] == 2 for p in report["protocols"].values())
+    assert all(ep["chunks"] == 2 for ep in report["protocols"]["short_id"]["per_episode"])  # 8 steps, N = 4
+    assert all(ep["chunks"] == 4 for ep in report["protocols"]["id"]["per_episode"])
     # the controller drives the example env through episodes: D_R-I from the example detector (tau
     # tiny: OOD from the first forecast on) and the example trigger ending the subtask after 2 chunks
     from tensordict import TensorDict

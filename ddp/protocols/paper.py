@@ -1,0 +1,47 @@
+"""The paper's Table 1 conditions.
+
+==================  ==========================  ==============================================
+protocol            environment                 controller
+==================  ==========================  ==============================================
+id                  in distribution             base policy (detector ``never``)
+ood_base            displacement                base policy, no tracking
+ood_tracking        displacement                oracle detector + tracking/recovery, real latents
+                                                (the paper's "DP3 (Ablation)")
+ood_ddp             displacement                the recipe's controller: detect, track, imagine
+imagination_10/50/  in distribution             real latents replaced by imagined ones with
+100                                             probability 0.1 / 0.5 / 1 after the first chunk
+occlusion           camera blind for some       the recipe's detector; imagination through it
+                    chunks
+==================  ==========================  ==============================================
+"""
+
+from __future__ import annotations
+
+from ddp.protocols.base import EvalProtocol, NoOptions
+from ddp.registry import register
+
+
+def _protocol(name: str, summary: str, **fields):
+    def factory(config: NoOptions) -> EvalProtocol:
+        return EvalProtocol(**fields)
+
+    factory.__doc__ = summary
+    factory.__name__ = factory.__qualname__ = name
+    register("protocol", name, config=NoOptions)(factory)
+
+
+_protocol("id", "in distribution, the base policy (detector never, no tracking)",
+          detector={"name": "never"}, tracker=False)
+_protocol("ood_base", "displaced objects, the base policy without tracking",
+          env={"displacement": True}, env_if_supported={"oracle_tracking": False}, detector={"name": "never"},
+          tracker=False)
+_protocol("ood_tracking", "displaced objects, oracle detector + tracking and recovery on real latents (DP3 ablation)",
+          env={"displacement": True}, detector={"name": "oracle"}, imagine=False, env_tracking=True)
+_protocol("ood_ddp", "displaced objects, the recipe's controller: detect, track, imagine, recover",
+          env={"displacement": True}, env_tracking=True)
+for _p in (10, 50, 100):
+    _protocol(f"imagination_{_p}", f"in distribution, real latents replaced by imagined ones with probability "
+                                   f"{_p / 100:g} after the first chunk",
+              detector={"name": "substitution", "p": _p / 100}, tracker=False)
+_protocol("occlusion", "the camera is blind for eval.occlusion_chunks chunks; the recipe's detector",
+          occlusion=True, tracker=False)
