@@ -63,7 +63,7 @@ def separability(exp, *, episodes: int = 10, seed: int | None = None, tau: float
     when that is null too, calibrates one from ``eval.calibration_episodes`` ID episodes on seeds
     ``seed + 100000 ...`` (as ``ddp eval`` does).
     """
-    from ddp.evaluate import _env_overrides, calibration_values, rollout_episodes
+    from ddp.eval_runner import calibration_values, env_overrides, rollout_episodes
     from ddp.protocols.base import get_protocol
 
     if not exp.model.has_world_model:
@@ -74,7 +74,7 @@ def separability(exp, *, episodes: int = 10, seed: int | None = None, tau: float
     for name in ("id", "ood_base"):
         ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
         runs[name] = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed,
-                                      overrides=_env_overrides(exp, get_protocol(name), cfg.max_steps),
+                                      overrides=env_overrides(exp, get_protocol(name), cfg.max_steps),
                                       desc=f"D_R-I {name}", progress=progress)
     calibrated, per_chunk = False, None
     if tau is None:

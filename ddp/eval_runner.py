@@ -1,0 +1,174 @@
+"""Evaluation runner: a protocol and a trained experiment in, one result dict per episode out.
+
+Builds the seeded evaluation envs (``ChunkedEnv`` around the recipe's env, in this process or one
+worker each), runs the controller through a TorchRL collector, and summarises every episode
+(seed, success, chunks, the controller's mode / imagination / D_R-I per chunk). Also the ID
+rollouts that calibrate a discrepancy threshold. Writing results is :mod:`ddp.eval_report`'s job.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ddp.envs.chunked import ChunkedEnv, chunk_render_config
+from ddp.errors import RecipeError
+from ddp.protocols.base import EvalProtocol
+from ddp.video import VideoSettings
+
+
+def env_overrides(exp, protocol: EvalProtocol, max_steps: int | None) -> dict:
+    fields = {f.name for f in dataclasses.fields(exp.parts["env"].config)}
+    over = dict(exp.recipe.eval.env)
+    over.update(protocol.env)
+    over.update({k: v for k, v in protocol.env_if_supported.items() if k in fields})
+    if protocol.env_tracking and exp.recipe.eval.env_oracle_tracking:
+        over["oracle_tracking"] = True
+    if protocol.occlusion:
+        over.update(occlusion_chunk=exp.recipe.eval.occlusion_chunk, occlusion_chunks=exp.recipe.eval.occlusion_chunks)
+    if max_steps is not None:
+        over["max_episode_steps"] = max_steps
+    missing = sorted(set(over) - fields)
+    if missing:
+        raise RecipeError(
+            f"env '{exp.parts['env'].plugin.name}' does not support {', '.join(missing)} needed by this protocol",
+            source=exp.source, key="env",
+        )
+    return over
+
+
+@dataclass(frozen=True, eq=False)  # hashed by identity (torchrl puts factories in a set)
+class ChunkedEnvFactory:
+    """Builds one evaluation env (``ChunkedEnv`` around the recipe's env plugin); picklable, so
+    ``ParallelEnv`` can call it in a worker process (it re-imports the recipe's ``plugins`` there)."""
+
+    plugin: str
+    config: object
+    action_steps: int
+    obs_steps: int
+    safe_lift: float = 0.0
+    seed: int = 0
+    video: VideoSettings | None = None
+    plugin_modules: tuple[str, ...] = ()
+
+    def __call__(self) -> ChunkedEnv:
+        from ddp import registry
+
+        if self.plugin_modules:
+            registry.import_plugin_modules(list(self.plugin_modules))
+        cfg = chunk_render_config(self.config, self.action_steps, self.obs_steps)
+        base = registry.get("env", self.plugin).factory(cfg, seed=self.seed)
+        return ChunkedEnv(base, self.action_steps, self.obs_steps, safe_lift=self.safe_lift, video=self.video)
+
+
+def env_factory(exp, seed: int, overrides: dict | None = None, video: VideoSettings | None = None) -> ChunkedEnvFactory:
+    pol, part = exp.recipe.policy, exp.parts["env"]
+    return ChunkedEnvFactory(
+        plugin=part.plugin.name, config=dataclasses.replace(part.config, **(overrides or {})),
+        action_steps=pol.action_steps, obs_steps=pol.obs_steps, safe_lift=exp.recipe.controller.safe_lift,
+        seed=seed, video=video, plugin_modules=exp.plugin_modules,
+    )
+
+
+def make_chunked_env(exp, seed: int, overrides: dict | None = None, video: VideoSettings | None = None) -> ChunkedEnv:
+    return env_factory(exp, seed, overrides, video)()
+
+
+def _chunks_per_episode(exp, overrides: dict) -> int:
+    cfg = dataclasses.replace(exp.parts["env"].config, **overrides)
+    steps = getattr(cfg, "max_episode_steps", None)
+    if steps is None:
+        raise RecipeError("the env config has no max_episode_steps; set eval.max_steps", source=exp.source, key="eval")
+    return math.ceil(steps / exp.recipe.policy.action_steps)
+
+
+def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: dict, num_envs: int = 1,
+                     desc: str = "", progress: bool = True, parallel: bool = False,
+                     video: VideoSettings | None = None) -> list[dict]:
+    """Run ``episodes`` seeded episodes with a torchrl Collector; one dict of results per episode.
+
+    ``num_envs > 1`` steps several envs as one batch: in this process (``SerialEnv``) or, with
+    ``parallel=True``, each in its own worker process (``ParallelEnv``). Env ``i`` runs the
+    seeds ``seed + i * ceil(episodes / num_envs) + 0, 1, ...``. ``video`` records each env's
+    first ``video.episodes`` episodes.
+    """
+    from torchrl.collectors import Collector
+    from torchrl.envs import ParallelEnv, SerialEnv
+
+    chunks = _chunks_per_episode(exp, overrides)
+    num_envs = max(1, min(num_envs, episodes))
+    per_env = math.ceil(episodes / num_envs)
+
+    def factory(i: int) -> ChunkedEnvFactory:
+        first = seed + i * per_env
+        vid = None if video is None else dataclasses.replace(video, first_seed=first)
+        return env_factory(exp, first, overrides, vid)
+
+    if num_envs == 1:
+        env = factory(0)()
+    else:
+        batched = ParallelEnv if parallel else SerialEnv
+        env = batched(num_envs, [factory(i) for i in range(num_envs)])
+    controller.reset()
+    collector = Collector(
+        env, controller, frames_per_batch=chunks * num_envs, total_frames=chunks * num_envs * per_env,
+        reset_when_done=True, trust_policy=True, auto_register_policy_transforms=False,
+    )
+    results: list[dict] = []
+    bar = tqdm(total=episodes, desc=desc, disable=not progress, unit="ep")
+    try:
+        for batch in collector:
+            batch = batch.reshape(num_envs, chunks) if batch.batch_dims == 1 else batch
+            for i in range(num_envs):
+                traj = batch[i]
+                if len(results) >= episodes:
+                    break
+                ep = i * per_env + len([r for r in results if r["env"] == i])
+                results.append(_summarise(traj, env_index=i, seed=seed + ep))
+                bar.update(1)
+                bar.set_postfix(success=f"{np.mean([r['success'] for r in results]):.2f}")
+            if len(results) >= episodes:
+                break
+    finally:
+        bar.close()
+        collector.shutdown()
+        env.close(raise_if_closed=False)
+    return sorted(results, key=lambda r: r["seed"])
+
+
+def _summarise(traj, env_index: int, seed: int) -> dict:
+    success = traj.get(("next", "success")).reshape(-1)
+    out = {
+        "seed": seed,
+        "env": env_index,
+        "success": bool(success.any()),
+        "chunks": int(traj.batch_size[0]),
+        "first_success_chunk": int(success.nonzero()[0]) if bool(success.any()) else None,
+    }
+    for key in ("mode", "imagined", "discrepancy"):
+        if ("ddp", key) in traj.keys(True):
+            out[key] = traj.get(("ddp", key)).reshape(-1).float().tolist()
+    return out
+
+
+def calibration_values(exp, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
+                       parallel: bool = False) -> tuple[list[float], list[int]]:
+    """D_R-I values observed in ID rollouts of the base policy, and the chunk index of each."""
+    # the base policy, with the world model's forecast made every cycle so that D_R-I is measured
+    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
+    res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=dict(exp.recipe.eval.env), num_envs=num_envs,
+                           desc="calibrate tau", progress=progress, parallel=parallel)
+    pairs = [(v, c) for r in res for c, v in enumerate(r.get("discrepancy", [])) if not math.isnan(v)]
+    return [v for v, _ in pairs], [c for _, c in pairs]
+
+
+def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
+                  parallel: bool = False) -> float:
+    """Set a discrepancy detector's tau (and per-chunk thresholds) from D_R-I in ID rollouts; return tau."""
+    values, chunks = calibration_values(exp, episodes=episodes, seed=seed, num_envs=num_envs, progress=progress,
+                                        parallel=parallel)
+    return detector.calibrate(values, chunks=chunks)
