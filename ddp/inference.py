@@ -143,8 +143,8 @@ class DDPController(KeyedModule):
         trig = self._trigger(s)
         if trig is None:
             return False
-        if isinstance(trig, tuple):
-            return chunk >= trig[1] and s.subtask not in s.done_subtasks
+        if isinstance(trig, tuple):  # a recovery at a fixed chunk (oracle snap-back): once per episode
+            return chunk >= trig[1] and s.subtask_start < trig[1] and s.subtask < len(self.subtasks)
         return trig.fired(obs, chunk, chunk - s.subtask_start)
 
     def _forecast(self, envs: list[int]) -> None:
@@ -237,7 +237,8 @@ class DDPController(KeyedModule):
             target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
             if s.ood and s.displaced is not None and self.recovery is not None:
                 shift, recovered = self.recovery.recover(s.offsets, s.displaced & ~s.recovered, target)
-                ee_shift[b] += shift  # a^rec_j = -Delta p_Cj
+                if self.track:  # a^rec_j = -Delta p_Cj undoes a^track_j; without tracking there is none to undo
+                    ee_shift[b] += shift
                 s.recovered |= recovered
                 if bool(recovered.any()):
                     s.recheck_after = chunk_index[b]  # re-evaluate D_R-I once the shift is observed

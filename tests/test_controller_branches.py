@@ -1,0 +1,287 @@
+"""Controller branches of Algorithm 2 that the end-to-end tests do not pin down, each on the synthetic env.
+
+The re-check of D_R-I after a recovery (sticky detectors), the per-subtask triggers (timer, gripper
+closure), the oracle snap-back at a fixed chunk, ``controller.track: false``, ``controller.safe_lift``
+and the ``ood_base`` protocol. The untrained tiny model's actions are arbitrary: only the controller's
+decisions (mode, subtask, ee_shift) and what the env executes are checked.
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from ddp import build
+from ddp.evaluate import env_overrides, make_chunked_env
+from ddp.protocols.base import get_protocol
+
+DELTA = [0.2, 0.0, 0.0]  # the cube moves at the start of chunk 1; the controller sees it at cycle 2
+CHUNKS = 8  # max_episode_steps 64 / action_steps 8
+ZERO = torch.zeros(3)
+
+
+def make_exp(recipe, **controller):
+    """The tiny recipe on the displaced synthetic env, with the normaliser fit on its demos."""
+    recipe["env"].update(displacement=True, displacement_chunk=1, displacement_delta=DELTA, max_episode_steps=64)
+    recipe["controller"] = {
+        "detector": {"name": "oracle"},
+        "tracker": {"name": "oracle"},
+        "recovery": {"name": "target_specific"},
+        "subtasks": [{"target": 0, "trigger": {"name": "chunk_index", "chunk": 4}}, {"target": None}],
+        **controller,
+    }
+    e = build(recipe)
+    eps = e.episodes()
+    e.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
+    return e
+
+
+def rollout(exp, policy, env=None, **env_over):
+    env = env if env is not None else make_chunked_env(exp, seed=0, overrides=env_over)
+    ctrl = getattr(policy, "ctrl", policy)
+    ctrl.reset()
+    return env.rollout(CHUNKS, policy, break_when_any_done=False)
+
+
+def shifts(r):
+    return [[round(float(x), 6) for x in row] for row in r["ee_shift"]]
+
+
+# --------------------------------------------------------------------------- 1. re-check after recovery
+class ScriptedStickyDetector(torch.nn.Module):
+    """A sticky detector (the D_R-I contract: once OOD, only a recovery + re-check ends it) whose
+    verdict is scripted per chunk index: OOD exactly at the chunks in ``ood_at``."""
+
+    sticky = True
+    needs_discrepancy = False
+
+    def __init__(self, ood_at):
+        super().__init__()
+        self.ood_at = set(ood_at)
+        self.seen = []
+
+    def key(self, role):
+        return ("ddp", role)
+
+    def forward(self, td):
+        chunk = td.get("chunk_index").reshape(-1).tolist()
+        self.seen += chunk
+        td.set(("ddp", "ood"), torch.tensor([c in self.ood_at for c in chunk]))
+        return td
+
+    def reset(self):
+        self.seen = []
+
+
+def test_sticky_detector_returns_to_reality_only_at_the_recheck_after_recovery(tiny_recipe):
+    exp = make_exp(tiny_recipe)  # subtask 0 (target 0) ends at chunk 4: recovery there
+    ctrl = exp.make_controller()
+    # OOD seen at chunk 2 only: sticky, so not-OOD at chunks 3-4 does not end OOD mode; the recovery at
+    # chunk 4 arms a re-check on the first observation after it (chunk 5), where the detector says ID
+    ctrl.detector = ScriptedStickyDetector(ood_at={2})
+    r = rollout(exp, ctrl)
+    assert ctrl.detector.seen == list(range(CHUNKS))
+    assert r["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 0, 0, 0]
+    assert r["ddp", "imagined"].tolist()[2:5] == [True] * 3 and not r["ddp", "imagined"][5:].any()
+    assert shifts(r)[2] == DELTA and shifts(r)[4] == [-d for d in DELTA]  # track, then recover
+    assert r["ddp", "subtask"].tolist()[4] == 1
+
+    # the detector still says OOD at the re-check (chunk 5): OOD mode stays, and stays for good (one
+    # re-check per recovery), although it says ID at chunks 6-7
+    ctrl.detector = ScriptedStickyDetector(ood_at={2, 5})
+    r = rollout(exp, ctrl)
+    assert r["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 1]
+    assert r["ddp", "imagined"][2:].all()
+
+    # without a recovery (subtask never ends) there is no re-check: OOD mode holds to the episode's end
+    ctrl = exp.make_controller()
+    ctrl.subtasks[0].trigger = None
+    ctrl.detector = ScriptedStickyDetector(ood_at={2})
+    r = rollout(exp, ctrl)
+    assert r["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 1]
+
+
+# --------------------------------------------------------------------------- 2. per-subtask triggers
+def test_timer_trigger_counts_chunks_from_the_subtask_start(tiny_recipe):
+    exp = make_exp(tiny_recipe, subtasks=[
+        {"target": 0, "trigger": {"name": "timer", "chunks": 2}},
+        {"target": None, "trigger": {"name": "timer", "chunks": 3}},
+        {"target": None},
+    ])
+    r = rollout(exp, exp.make_controller(detector={"name": "never"}), displacement=False)
+    # subtask 0 ends at chunk 2 (2 chunks in it), subtask 1 three chunks later at chunk 5 (not at chunk 3,
+    # which a trigger counting from the episode start would give)
+    assert r["ddp", "subtask"].tolist() == [0, 0, 1, 1, 1, 2, 2, 2]
+
+
+def test_timer_trigger_ends_the_subtask_with_its_recovery(tiny_recipe):
+    exp = make_exp(tiny_recipe, subtasks=[{"target": 0, "trigger": {"name": "timer", "chunks": 6}}, {"target": None}])
+    r = rollout(exp, exp.make_controller())
+    assert r["ddp", "subtask"].tolist() == [0] * 6 + [1, 1]
+    expected = [[0.0] * 3] * CHUNKS
+    expected[2], expected[6] = DELTA, [-d for d in DELTA]  # tracked at OOD entry, recovered at the timer's end
+    assert shifts(r) == expected
+
+
+class CloseGripperFrom:
+    """The controller, with the gripper command overridden: open before chunk ``chunk``, closed from it."""
+
+    def __init__(self, ctrl, chunk):
+        self.ctrl, self.chunk = ctrl, chunk
+
+    def __call__(self, td):
+        td = self.ctrl(td)
+        closing = int(td["chunk_index"].reshape(-1)[0]) >= self.chunk
+        td["action"][..., 3] = 1.0 if closing else -1.0
+        return td
+
+
+def test_gripper_closure_trigger_ends_the_subtask_when_the_fingers_close(tiny_recipe):
+    exp = make_exp(tiny_recipe, subtasks=[{"target": 0, "trigger": {"name": "gripper_closure"}}, {"target": None}])
+    # the gripper closes during chunk 2: the first observation showing it closed is chunk 3's
+    r = rollout(exp, CloseGripperFrom(exp.make_controller(), chunk=2))
+    width = (r["agent_pos"][:, -1, 3:6] - r["agent_pos"][:, -1, 6:9]).norm(dim=-1)
+    assert (width[:3] > 0.045).all() and (width[3:] < 0.045).all()  # what the trigger reads
+    assert r["ddp", "subtask"].tolist() == [0, 0, 0, 1, 1, 1, 1, 1]
+    assert shifts(r)[2] == DELTA and shifts(r)[3] == [-d for d in DELTA]  # the subtask's recovery fires then
+    assert r["ddp", "mode"].tolist() == [0, 0, 1, 1, 0, 0, 0, 0]  # the oracle sees the target recovered
+
+    # a gripper that never closes never ends the subtask (and nothing is recovered)
+    r = rollout(exp, CloseGripperFrom(exp.make_controller(), chunk=CHUNKS + 1))
+    assert (r["ddp", "subtask"] == 0).all()
+    assert all(s == [0.0] * 3 for i, s in enumerate(shifts(r)) if i != 2)
+
+
+# --------------------------------------------------------------------------- 3. oracle snap-back
+@pytest.mark.parametrize("trigger", [{"name": "chunk_index", "chunk": 3}, {"name": "timer", "chunks": 1}, None])
+def test_oracle_snapback_recovers_at_its_fixed_chunk_whatever_the_triggers_say(tiny_recipe, trigger):
+    exp = make_exp(tiny_recipe, recovery={"name": "oracle_snapback", "chunk": 6},
+                   subtasks=[{"target": 0, "trigger": trigger}, {"target": None}])
+    r = rollout(exp, exp.make_controller())
+    expected = [[0.0] * 3] * CHUNKS
+    expected[2], expected[6] = DELTA, [-d for d in DELTA]
+    assert shifts(r) == expected
+    assert r["ddp", "subtask"].tolist() == [0] * 6 + [1, 1]  # the fixed chunk ends one subtask, once
+    assert r["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 0]  # recovered at 6, seen so at 7
+    offsets = r["next", "privileged", "ee_offset"]
+    assert torch.allclose(offsets[5], torch.tensor(DELTA)) and torch.allclose(offsets[6], ZERO, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- 4. controller.track
+def test_track_false_enters_ood_without_a_tracking_shift(tiny_recipe):
+    exp = make_exp(tiny_recipe, subtasks=[{"target": 0}])  # no subtask end: no recovery shift either
+    r = rollout(exp, exp.make_controller(track=True))
+    assert r["ddp", "mode"][2] == 1 and shifts(r)[2] == DELTA
+    assert torch.allclose(r["next", "privileged", "ee_offset"][2], torch.tensor(DELTA))
+
+    r = rollout(exp, exp.make_controller(track=False))
+    assert r["ddp", "mode"].tolist() == [0, 0] + [1] * 6 and r["ddp", "imagined"][2:].all()
+    assert (r["ee_shift"] == 0).all()
+    assert torch.allclose(r["next", "privileged", "ee_offset"], torch.zeros(CHUNKS, 3))
+
+    class LateTracker(torch.nn.Module):
+        """Cannot see the object at the OOD entry (cycle 2); sees it from cycle 3 (the keep-tracking path)."""
+
+        def __init__(self):
+            super().__init__()
+            self.calls = 0
+
+        def forward(self, td):
+            self.calls += 1
+            offsets = td.get(("privileged", "displacement")).clone()
+            if self.calls <= 3:
+                offsets.zero_()
+            td.set(("ddp", "offsets"), offsets)
+            return td
+
+        def reset(self):
+            self.calls = 0
+
+        def key(self, role):
+            return ("ddp", role)
+
+    # with a subtask end, track: false emits no recovery shift either (there is no tracking shift to undo),
+    # although the object counts as recovered and D_R-I is re-checked
+    exp2 = make_exp(tiny_recipe, subtasks=[{"target": 0, "trigger": {"name": "chunk_index", "chunk": 4}},
+                                           {"target": None}])
+    r = rollout(exp2, exp2.make_controller(track=False))
+    assert (r["ee_shift"] == 0).all() and r["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 0, 0, 0]
+    assert torch.allclose(r["next", "privileged", "ee_offset"], torch.zeros(CHUNKS, 3))
+    r = rollout(exp2, exp2.make_controller(track=True))
+    assert shifts(r)[2] == DELTA and shifts(r)[4] == [-d for d in DELTA]
+
+    for track, late_shift in ((True, DELTA), (False, [0.0] * 3)):
+        ctrl = exp.make_controller(track=track)
+        ctrl.tracker = LateTracker()
+        r = rollout(exp, ctrl)
+        assert r["ddp", "mode"][2] == 1 and shifts(r)[2] == [0.0] * 3
+        assert shifts(r)[3] == late_shift, track
+
+
+# --------------------------------------------------------------------------- 5. controller.safe_lift
+def test_safe_lift_reaches_the_base_env_and_the_shift_is_exact(tiny_recipe):
+    exp = make_exp(tiny_recipe, safe_lift=0.05)
+    env = make_chunked_env(exp, seed=0, overrides={"displacement": False})
+    assert env.safe_lift == 0.05
+    calls = []
+    original = env.base.shift_end_effector
+
+    def recording(delta, **kwargs):
+        calls.append((np.asarray(delta).tolist(), kwargs))
+        return original(delta, **kwargs)
+
+    env.base.shift_end_effector = recording
+    td = env.reset()
+    before = env.base.ee.copy()
+    td["action"] = torch.zeros(8, 4)
+    td["ee_shift"] = torch.zeros(3)
+    td = env.step(td)["next"]
+    assert calls == []  # a zero shift is no call
+    assert np.allclose(env.base.ee, before)
+    delta = torch.tensor([0.05, -0.03, 0.02])
+    td["action"] = torch.zeros(8, 4)
+    td["ee_shift"] = delta
+    nxt = env.step(td)["next"]
+    assert len(calls) == 1 and calls[0][1] == {"safe_lift": 0.05}
+    assert np.allclose(calls[0][0], delta.tolist())
+    # the synthetic env's shift lands the end-effector exactly delta away (the lift is up-and-back-down)
+    assert np.allclose(env.base.ee - before, delta.numpy(), atol=1e-7)
+    assert torch.allclose(nxt["agent_pos"][-1, :3] - td["agent_pos"][-1, :3], delta, atol=1e-6)
+    assert torch.allclose(nxt["privileged", "ee_offset"], delta)
+
+    # through a controller rollout: the tracking and the recovery shifts both go with safe_lift
+    env = make_chunked_env(exp, seed=0)
+    calls.clear()
+    original = env.base.shift_end_effector
+    env.base.shift_end_effector = recording
+    r = rollout(exp, exp.make_controller(), env=env)
+    assert [(np.round(d, 6).tolist(), kw) for d, kw in calls] == [
+        (DELTA, {"safe_lift": 0.05}), ([-d for d in DELTA], {"safe_lift": 0.05})
+    ]
+    assert shifts(r)[2] == DELTA and shifts(r)[4] == [-d for d in DELTA]
+
+
+# --------------------------------------------------------------------------- 6. the ood_base protocol
+def protocol_rollout(exp, name):
+    """One episode of a protocol, built the way ddp.evaluate builds it."""
+    protocol = get_protocol(name)
+    overrides = env_overrides(exp, protocol, exp.recipe.eval.max_steps)
+    ctrl = exp.make_controller(detector=protocol.detector, imagine=protocol.imagine, tracker=protocol.tracker)
+    return ctrl, rollout(exp, ctrl, **overrides)
+
+
+def test_ood_base_displaces_but_never_detects_nor_shifts(tiny_recipe):
+    exp = make_exp(tiny_recipe)
+    exp.parts["env"].config.displacement = False  # the protocol, not the recipe, must turn the displacement on
+
+    ctrl, r = protocol_rollout(exp, "ood_base")
+    assert ctrl.tracker is None and ctrl.recovery is None
+    displacement = r["next", "privileged", "displacement"][:, 0]
+    assert torch.allclose(displacement[1:], torch.tensor(DELTA).expand(CHUNKS - 1, 3))  # the cube was displaced
+    assert (r["ddp", "mode"] == 0).all() and not r["ddp", "imagined"].any()
+    assert (r["ee_shift"] == 0).all()
+    assert torch.allclose(r["next", "privileged", "ee_offset"], torch.zeros(CHUNKS, 3))
+
+    # the same displaced episode under ood_ddp: detected at cycle 2, tracked there, recovered at 4
+    ctrl, r = protocol_rollout(exp, "ood_ddp")
+    assert torch.allclose(r["next", "privileged", "displacement"][1:, 0], torch.tensor(DELTA).expand(CHUNKS - 1, 3))
+    assert r["ddp", "mode"][2] == 1 and shifts(r)[2] == DELTA
