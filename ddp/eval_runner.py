@@ -160,7 +160,11 @@ def calibration_values(exp, *, episodes: int, seed: int, num_envs: int = 1, prog
     """D_R-I values observed in ID rollouts of the base policy, and the chunk index of each."""
     # the base policy, with the world model's forecast made every cycle so that D_R-I is measured
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
-    res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=dict(exp.recipe.eval.env), num_envs=num_envs,
+    # the id protocol's env (eval.env, eval.max_steps): calibration episodes are as long as evaluated ones
+    from ddp.protocols.base import get_protocol
+
+    overrides = env_overrides(exp, get_protocol("id"), exp.recipe.eval.max_steps)
+    res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=overrides, num_envs=num_envs,
                            desc="calibrate tau", progress=progress, parallel=parallel)
     pairs = [(v, c) for r in res for c, v in enumerate(r.get("discrepancy", [])) if not math.isnan(v)]
     return [v for v, _ in pairs], [c for _, c in pairs]

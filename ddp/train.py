@@ -169,6 +169,12 @@ class Trainer:
                     ema.load_state_dict(state["ema"])
                 optimizer.load_state_dict(state["optimizer"])
                 lr_sched.load_state_dict(state["lr_scheduler"])
+                # the optimiser restored the OLD schedule's lr; a changed max_steps / epochs must take
+                # effect from the very next update, so recompute it from this schedule at the step reached
+                factor = warmup_cosine(cfg.warmup_steps, total, cfg.lr_schedule)(lr_sched.last_epoch)
+                for group in optimizer.param_groups:
+                    group["lr"] = group["initial_lr"] * factor
+                lr_sched._last_lr = [g["lr"] for g in optimizer.param_groups]
                 noise.set_state(state["noise_rng"])
             except (RuntimeError, ValueError, KeyError, TypeError) as err:
                 from ddp.checkpoint import describe_mismatch
