@@ -258,6 +258,9 @@ def main(argv: list[str] | None = None) -> int:
     except Preempted as err:
         print(f"ddp: {err} (a checkpoint was written where training was running)", file=sys.stderr)
         return 128 + err.signum
+    except BrokenPipeError:  # `ddp list | head`: the reader left; no traceback
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except KeyboardInterrupt:
         print("ddp: interrupted (a checkpoint was written where training was running)", file=sys.stderr)
         return 130

@@ -54,3 +54,10 @@ def test_python_dash_m_runs_the_cli():
     out = subprocess.run([sys.executable, "-m", "ddp", "list", "scheduler"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "ddim" in out.stdout and "consistency_flow" in out.stdout
+
+
+def test_a_closed_pipe_ends_quietly():
+    """`ddp list | head -1`: the reader leaves early; no BrokenPipeError traceback."""
+    out = subprocess.run(f"{sys.executable} -m ddp list | head -1", shell=True, capture_output=True, text=True,
+                         timeout=120)
+    assert out.stdout.startswith("encoder:") and "Traceback" not in out.stderr, out.stderr
