@@ -256,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ddp: error: {err}", file=sys.stderr)
         return 2
     except Preempted as err:
-        print(f"ddp: {err} (a checkpoint was written where training was running)", file=sys.stderr)
+        print(f"ddp: {err} (a training run saved its checkpoint; the same command resumes it)", file=sys.stderr)
         return 128 + err.signum
     except BrokenPipeError:  # `ddp list | head`: the reader left; no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

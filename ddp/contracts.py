@@ -11,9 +11,10 @@ TensorDict keys: detectors and trackers are TensorDict modules whose keys are
 named by role (``key(role)``, renamable with ``set_keys``): a detector writes
 its ``"ood"`` role ([B] bool), a tracker its ``"offsets"`` role ([B, K, 3]
 metres per tracked object; K is how many objects the controller tracks).
-What they read is theirs to declare in ``in_keys`` (the controller writes
-``("ddp", "discrepancy")`` [B], ``("ddp", "recovered")`` [B, K] and passes
-the env's observation through).
+What they read is theirs to declare in ``in_keys``: the env's observation,
+and what the controller writes before calling them: ``("ddp", "discrepancy")``
+[B] for the detector, and, when there is a tracker, ``("ddp", "recovered")``
+[B, K] (objects already recovered) for the detector too (the tracker runs first).
 """
 
 from __future__ import annotations

@@ -166,7 +166,7 @@ def calibration_values(exp, *, episodes: int, seed: int, num_envs: int = 1, prog
     overrides = env_overrides(exp, get_protocol("id"), exp.recipe.eval.max_steps)
     res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=overrides, num_envs=num_envs,
                            desc="calibrate tau", progress=progress, parallel=parallel)
-    pairs = [(v, c) for r in res for c, v in enumerate(r.get("discrepancy", [])) if not math.isnan(v)]
+    pairs = [(v, c) for r in res for c, v in enumerate(r.get("discrepancy", [])) if math.isfinite(v)]
     return [v for v, _ in pairs], [c for _, c in pairs]
 
 

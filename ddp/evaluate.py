@@ -87,6 +87,12 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
         protocol = get_protocol(name)
         overrides = env_overrides(exp, protocol, cfg.max_steps)
         ctrl = exp.make_controller(detector=protocol.detector, imagine=protocol.imagine, tracker=protocol.tracker)
+        if not isinstance(ctrl.detector, Calibratable) and callable(getattr(ctrl.detector, "calibrate", None)):
+            import warnings
+
+            warnings.warn(f"detector {type(ctrl.detector).__name__} has calibrate() but not the whole Calibratable "
+                          "contract (needs_calibration, calibration, load_calibration): it is not calibrated",
+                          stacklevel=2)
         if isinstance(ctrl.detector, Calibratable) and ctrl.detector.needs_calibration:
             if calibration is None:
                 calibrate_tau(exp, ctrl.detector, episodes=cfg.calibration_episodes, seed=s.seed + 100_000, **runs)

@@ -122,10 +122,12 @@ class Experiment:
 
         c = self.recipe.controller
         env_part = self.parts.get("env")
-        hold = env_part.plugin.factory.action_hold if env_part is not None else None  # the env contract's
+        # the env contract's action_hold (read from the class: an env may predate it; only "hold" needs it)
+        hold = getattr(env_part.plugin.factory, "action_hold", None) if env_part is not None else None
         if c.on_nonfinite == "hold" and hold is None:
-            raise RecipeError("'hold' needs to know how the env holds still (its action_hold), but the recipe "
-                              "has no env", source=self.source, key="controller.on_nonfinite")
+            what = f"env '{env_part.plugin.name}' declares no action_hold" if env_part else "the recipe has no env"
+            raise RecipeError(f"'hold' needs to know how the env holds still, but {what}", source=self.source,
+                              key="controller.on_nonfinite")
         det_part = self.parts["controller.detector"]
         if detector is not None:
             det_part = resolve_part("detector", detector, key="controller.detector", source="<protocol>")
@@ -208,10 +210,20 @@ def experiment_from_checkpoint(path: str | os.PathLike, ema: bool = True, *, tru
     state = load_checkpoint(path)
     if not isinstance(state.get("recipe"), str):
         raise CheckpointError(f"{path}: the checkpoint holds no recipe (it was not written by ddp train)")
-    data = apply_overrides(load_yaml(state["recipe"]), overrides)
+    try:
+        stored = load_yaml(state["recipe"])
+    except Exception:  # noqa: BLE001 - any unreadable stored recipe
+        raise CheckpointError(f"{path}: the stored recipe is not readable YAML") from None
+    if not isinstance(stored, dict):
+        raise CheckpointError(f"{path}: the stored recipe is not a mapping (got {type(stored).__name__})")
+    overrides = list(overrides)
+    data = apply_overrides(stored, overrides)
     modules = data.get("plugins") or []
     if modules and not trust_plugins:
         warnings.warn(f"{path}: not importing the plugin modules its recipe lists ({', '.join(map(str, modules))}); "
                       "pass trust_plugins=True (--trust-plugins) if you trust their code", stacklevel=2)
-    exp = Experiment(data, f"{path}#recipe", trust_plugins=trust_plugins)
+    try:
+        exp = Experiment(data, f"{path}#recipe", trust_plugins=trust_plugins)
+    except RecipeError as err:
+        raise blame_override(err, overrides) from None
     return exp.load_checkpoint(path, ema=ema, state=state)

@@ -301,7 +301,9 @@ class DDPController(KeyedModule):
             else:
                 self.states[b].last_action = actions[b, -1].clone()
                 continue
-            actions[b], held[b], ee_shift[b] = self._hold_or_raise(b, chunk_index[b], why), True, 0.0
+            # the chunk holds still; a tracking / recovery shift (finite: from cleaned offsets) still runs,
+            # since the per-environment state above already counts it as done
+            actions[b], held[b] = self._hold_or_raise(b, chunk_index[b], why), True
         if self.model.has_world_model:
             # O_pred for the next cycle is W_phi(O_curr, a_t): in ID the forecast D_R-I compares
             # against, in OOD the autoregressive imagination the policy acts from (made lazily).

@@ -39,7 +39,8 @@ def stop_signals():
     if not _main_thread():
         yield
         return
-    previous = {s: signal.signal(s, _raise_preempted) for s in STOP_SIGNALS}
+    # a signal set to be ignored (SIGHUP under nohup) stays ignored
+    previous = {s: signal.signal(s, _raise_preempted) for s in STOP_SIGNALS if signal.getsignal(s) is not signal.SIG_IGN}
     try:
         yield
     finally:
@@ -54,7 +55,7 @@ def signals_deferred(received: list[int] | None = None):
     if not _main_thread():
         yield received
         return
-    signals = (signal.SIGINT, *STOP_SIGNALS)
+    signals = [s for s in (signal.SIGINT, *STOP_SIGNALS) if signal.getsignal(s) is not signal.SIG_IGN]
     previous = {s: signal.signal(s, lambda signum, frame: received.append(signum)) for s in signals}
     try:
         yield received

@@ -162,13 +162,17 @@ def shadowing_note(module: str, dist=None) -> str:
     inside = [p for p in found if p == cwd or p.startswith(cwd + os.sep)]
     if not inside:
         return ""
-    if dist is not None:
-        try:
-            root = os.path.abspath(str(dist.locate_file("")))
-        except Exception:  # noqa: BLE001
-            root = None
-        if root and any(p.startswith(root + os.sep) for p in inside):
-            return ""  # the distribution itself lives here (a plugin developed in place)
+    if dist is None:  # a recipe's plugins: entry: the distribution that installed the package, if any
+        names = importlib.metadata.packages_distributions().get(top, [])
+        dist = next(iter(importlib.metadata.distribution(n) for n in names[:1]), None) if names else None
+    if dist is None:
+        return ""  # nothing installed under that name: a local module, not a shadowed one
+    try:
+        root = os.path.abspath(str(dist.locate_file("")))
+    except Exception:  # noqa: BLE001
+        return ""
+    if any(p == root or p.startswith(root + os.sep) for p in inside):
+        return ""  # the distribution itself lives here (a plugin developed in place)
     return f" ('{top}' resolves to {inside[0]}: a folder of that name in the working directory shadows the installed package)"
 
 

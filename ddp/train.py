@@ -72,9 +72,12 @@ def check_resumable(path: Path, state: dict, current: dict) -> None:
         stored = load_yaml(state["recipe"])
     except Exception:  # noqa: BLE001 - any unreadable stored recipe
         raise CheckpointError(f"{path}: cannot resume: the stored recipe is not readable YAML") from None
+    task = current.get("task", {})
     changes = {
         k: v for k, v in recipe_changes(stored if isinstance(stored, dict) else {}, current).items()
         if not any(k == r or k.startswith(r + ".") for r in RESUMABLE)
+        # an env section now renders what task says (older recipes stored the env's own default)
+        and not (k in ("env.num_points", "env.point_dim") and v[1] == task.get(k.split(".")[1]))
     }
     if changes:
         shown = ", ".join(f"{k}: {_show(a)} -> {_show(b)}" for k, (a, b) in list(changes.items())[:4])
@@ -175,7 +178,15 @@ class Trainer:
                 for group in optimizer.param_groups:
                     group["lr"] = group["initial_lr"] * factor
                 lr_sched._last_lr = [g["lr"] for g in optimizer.param_groups]
-                noise.set_state(state["noise_rng"])
+                try:
+                    noise.set_state(state["noise_rng"])
+                except RuntimeError:  # saved on another device (train.device may change on resume)
+                    import warnings
+
+                    noise.manual_seed(exp.recipe.seed * 1_000_003 + int(state["step"]))
+                    warnings.warn(f"{ckpt_path}: the diffusion-noise generator was saved on another device; "
+                                  "reseeded from (seed, step): the run goes on, not bit-identical to an "
+                                  "uninterrupted one", stacklevel=2)
             except (RuntimeError, ValueError, KeyError, TypeError) as err:
                 from ddp.checkpoint import describe_mismatch
 

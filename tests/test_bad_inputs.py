@@ -178,6 +178,10 @@ CASES = [
     ("eval-no-recipe-in-checkpoint", lambda t, tr: ["eval", "--checkpoint",
                                                     fake_checkpoint(t / "x.pt", {k: v for k, v in ckpt_state(tr).items() if k != "recipe"})],
      "holds no recipe"),
+    ("eval-stored-recipe-not-a-mapping", lambda t, tr: ["eval", "--checkpoint", fake_checkpoint(t / "x.pt", {**ckpt_state(tr), "recipe": "- a\n"})],
+     "the stored recipe is not a mapping"),
+    ("eval-stored-recipe-not-yaml", lambda t, tr: ["eval", "--checkpoint", fake_checkpoint(t / "x.pt", {**ckpt_state(tr), "recipe": "a: [\n"})],
+     "the stored recipe is not readable YAML"),
     ("eval-untrusted-plugin", lambda t, tr: ["eval", "--checkpoint", fake_checkpoint(t / "x.pt", {**ckpt_state(tr), "recipe": yaml.safe_dump(
         tiny(plugins=["evil_plugin_pkg"], controller={"detector": {"name": "evil"}}))})],
      "the recipe's plugin modules were not imported (evil_plugin_pkg)"),

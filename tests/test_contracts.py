@@ -121,3 +121,19 @@ def test_the_controller_reads_renamed_detector_and_tracker_keys(tiny_recipe):
     assert r["ddp", "mode"].tolist() == [0, 0, 1, 1]  # the move (chunk 1) is seen from cycle 2
     assert torch.allclose(r["ee_shift"][2], torch.tensor([0.2, 0.0, 0.0]))
     assert ("mine", "is_ood") in r.keys(True) and ("ddp", "ood") not in r.keys(True)
+
+
+def test_an_encoder_written_before_point_dim_still_builds(tiny_recipe):
+    """Encoders receive point_dim when their factory takes it; an older one without it still builds."""
+    from ddp.encoders.dp3 import DP3Encoder, DP3EncoderConfig
+
+    @ddp.register("encoder", "old_encoder", config=DP3EncoderConfig)
+    class OldEncoder(DP3Encoder):
+        def __init__(self, config, *, agent_pos_dim):
+            super().__init__(config, agent_pos_dim=agent_pos_dim)
+
+    try:
+        tiny_recipe["encoder"] = {"name": "old_encoder"}
+        assert build(tiny_recipe).model.encoder.out_dim == 128
+    finally:
+        registry.unregister("encoder", "old_encoder")

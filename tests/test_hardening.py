@@ -240,3 +240,44 @@ def test_a_folder_shadowing_a_plugin_package_is_named(tmp_path, monkeypatch):
         for mod in [m for m in sys.modules if m.startswith("shadowed_ddp_plugin")]:
             sys.modules.pop(mod)
         registry.unregister("detector", "shadowed_detector")
+
+
+def test_a_signal_set_to_be_ignored_stays_ignored():
+    """Under nohup SIGHUP is ignored: training must not turn it into a stop."""
+    from ddp.preemption import signals_deferred, stop_signals
+
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with stop_signals():
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            assert signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL  # SIGTERM is still handled
+        with signals_deferred() as received:
+            os.kill(os.getpid(), signal.SIGHUP)
+            time.sleep(0.05)
+        assert received == []
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+
+
+def test_resume_accepts_an_env_that_now_follows_the_task(tmp_path):
+    """Older checkpoints stored the env's own num_points default; the env now renders task.num_points."""
+    r = tiny(tmp_path, max_steps=2)
+    build(r).train(progress=False)
+    ckpt = tmp_path / "run" / "last.pt"
+    state = load_checkpoint(ckpt)
+    stored = yaml.safe_load(state["recipe"])
+    stored["env"]["num_points"] = 128  # what an older version resolved for an env section without num_points
+    save_checkpoint(ckpt, {**{k: v for k, v in state.items() if k not in ("format", "version")},
+                           "recipe": yaml.safe_dump(stored)})
+    r["train"]["max_steps"] = 3
+    assert build(r).train(progress=False).steps == 3
+
+
+def test_calibration_ignores_nonfinite_discrepancies(tiny_recipe, monkeypatch):
+    import ddp.eval_runner as runner
+
+    exp = build(tiny_recipe)
+    canned = [{"discrepancy": [float("nan"), 0.1, float("inf"), 0.3]}, {"discrepancy": [float("nan"), 0.2]}]
+    monkeypatch.setattr(runner, "rollout_episodes", lambda *a, **k: canned)
+    values, chunks = runner.calibration_values(exp, episodes=2, seed=0, progress=False)
+    assert values == [0.1, 0.3, 0.2] and chunks == [1, 3, 1]

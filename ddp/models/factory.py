@@ -9,10 +9,19 @@ from ddp.schema import Part, Recipe
 
 def build_model(recipe: Recipe, parts: dict[str, Part]) -> DreamDiffusionPolicy:
     task, pol, wm = recipe.task, recipe.policy, recipe.world_model
+    import inspect
+
+    context = {"agent_pos_dim": task.agent_pos_dim, "point_dim": task.point_dim}
     try:
-        encoder = parts["encoder"].build(agent_pos_dim=task.agent_pos_dim, point_dim=task.point_dim)
-    except ValueError as err:
-        raise RecipeError(str(err), key="encoder") from None
+        params = inspect.signature(parts["encoder"].plugin.factory).parameters
+        if "point_dim" not in params and not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+            context.pop("point_dim")  # an encoder written before point_dim was passed
+    except (TypeError, ValueError):
+        pass
+    try:
+        encoder = parts["encoder"].build(**context)
+    except (ValueError, TypeError) as err:
+        raise RecipeError(str(err).splitlines()[0], key="encoder") from None
     latent = encoder.out_dim
     policy_net = parts["policy.denoiser"].build(input_dim=task.action_dim, global_cond_dim=pol.obs_steps * latent)
     wm_net = wm_sched = None
