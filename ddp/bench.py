@@ -1,7 +1,10 @@
 """Latency of the DDP control cycle and training throughput (``ddp bench``).
 
 Medians of many runs after warm-up, at batch 1, CUDA-synchronised on a GPU.
-Numbers, not assertions: compare them across runs in the same process.
+Numbers, not assertions: compare them across runs in the same process. :func:`compare`
+times the recipe and its eager DP3 baseline (the same recipe with the world model
+disabled, as ``recipes/methods/dp3.yaml`` does) one after the other in this process,
+and gives the ratios.
 """
 
 from __future__ import annotations
@@ -46,6 +49,9 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
         out["encoder_ms"] = _timed(lambda: model.encode(pc, pos), repeats=repeats, warmup=warmup, device=dev)
         out["policy_sample_ms"] = _timed(lambda: model.sample_actions(latent, generator=g), repeats=repeats,
                                          warmup=warmup, device=dev)
+        # what a robot waits for when nothing else is on the critical path: encode, then sample the chunk
+        out["obs_to_action_ms"] = _timed(lambda: model.sample_actions(model.encode(pc, pos), generator=g),
+                                         repeats=repeats, warmup=warmup, device=dev)
         actions = model.executed_actions(model.sample_actions(latent, generator=g))
         if model.has_world_model:
             out["world_model_imagine_ms"] = _timed(lambda: model.imagine(latent, actions, generator=g),
@@ -55,7 +61,8 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     td = TensorDict({"point_cloud": pc, "agent_pos": pos, "chunk_index": torch.ones(1, 1, dtype=torch.long, device=dev)},
                     batch_size=[1], device=dev)
     ctrl(td.clone())  # a first cycle so that D_R-I has a forecast to compare with
-    det_td = TensorDict({("ddp", "discrepancy"): torch.rand(1)}, batch_size=[1])
+    det_td = TensorDict({("ddp", "discrepancy"): torch.rand(1), "chunk_index": torch.ones(1, 1, dtype=torch.long)},
+                        batch_size=[1])
     out["detector_ms"] = _timed(lambda: ctrl.detector(det_td), repeats=repeats, warmup=warmup, device=dev)
     out["control_cycle_ms"] = _timed(lambda: ctrl(td.clone()), repeats=repeats, warmup=warmup, device=dev)
     # training throughput on random windows of the recipe's shapes
@@ -80,3 +87,24 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     out["train_samples_per_s"] = 1000.0 * B / ms
     model.eval()
     return out
+
+
+def baseline_of(exp):
+    """The eager DP3 baseline of a recipe: the same parts and sizes, world model disabled."""
+    from ddp.experiment import Experiment
+    from ddp.recipe import apply_overrides
+
+    data = apply_overrides(exp.resolved, ["world_model.enabled=false", "controller.detector={name: never}"])
+    return Experiment(data, f"{exp.source} (DP3 baseline)", trust_plugins=bool(exp.plugin_modules))
+
+
+def compare(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu",
+            train_steps: int = 5) -> dict[str, tuple[float, float | None, float | None]]:
+    """``{stage: (recipe, dp3_baseline, recipe / baseline)}``; the baseline is None for stages it lacks."""
+    mine = bench(exp, repeats=repeats, warmup=warmup, device=device, train_steps=train_steps)
+    base = bench(baseline_of(exp), repeats=repeats, warmup=warmup, device=device, train_steps=train_steps)
+    rows = {}
+    for k, v in mine.items():
+        b = base.get(k)
+        rows[k] = (v, b, (v / b) if b else None)
+    return rows

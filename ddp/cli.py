@@ -141,7 +141,7 @@ def cmd_run(args) -> int:
 def cmd_bench(args) -> int:
     import torch
 
-    from ddp.bench import bench
+    from ddp.bench import bench, compare
     from ddp.experiment import build
 
     _at_least_one(repeats=args.repeats, threads=args.threads)
@@ -150,9 +150,16 @@ def cmd_bench(args) -> int:
     exp = build(args.recipe, args.overrides)
     steps = exp.recipe.policy.scheduler.get("num_inference_steps")
     print(f"{exp.recipe.name}: batch 1, {steps} denoising steps, device {args.device}, {torch.get_num_threads()} threads")
-    for k, v in bench(exp, repeats=args.repeats, device=args.device).items():
-        unit = "" if k.endswith("per_s") else " ms"
-        print(f"  {k:<24} {v:10.1f}{unit}")
+    if args.no_baseline or not exp.recipe.world_model.enabled:
+        for k, v in bench(exp, repeats=args.repeats, device=args.device).items():
+            unit = "" if k.endswith("per_s") else " ms"
+            print(f"  {k:<24} {v:10.1f}{unit}")
+        return 0
+    print(f"  {'stage':<24} {exp.recipe.name[:12]:>12} {'dp3_baseline':>12} {'ratio':>7}  (baseline: world model off, "
+          "same process)")
+    for k, (v, b, ratio) in compare(exp, repeats=args.repeats, device=args.device).items():
+        cells = f"{v:12.1f} " + (f"{b:12.1f} {ratio:6.2f}x" if b is not None else f"{'-':>12} {'-':>7}")
+        print(f"  {k:<24} {cells}")
     return 0
 
 
@@ -203,6 +210,8 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=20, help="timed runs per stage (after warm-up)")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("--no-baseline", action="store_true",
+                   help="time the recipe only (default: also its eager DP3 baseline, world model off, with ratios)")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demos", help="generate scripted-expert demonstrations", description="Roll out the recipe's scripted expert, keep successful episodes and store them (memory-mapped) where the recipe's data section says.")

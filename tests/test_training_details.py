@@ -503,16 +503,33 @@ def test_cli_bench_prints_the_latency_lines(tmp_path, capsys):
     from ddp.cli import main
 
     recipe = _cli_recipe(tmp_path)
-    assert main(["bench", recipe, "--repeats", "1"]) == 0
+    assert main(["bench", recipe, "--repeats", "1", "--no-baseline"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].startswith("tiny: batch 1, 4 denoising steps, device cpu, ")
     values = {}
     for line in lines[1:]:
         name, value, *unit = line.split()
         values[name] = (float(value), unit)
-    for name in ("encoder_ms", "policy_sample_ms", "world_model_imagine_ms", "detector_ms", "control_cycle_ms",
-                 "train_step_ms"):
+    for name in ("encoder_ms", "policy_sample_ms", "obs_to_action_ms", "world_model_imagine_ms", "detector_ms",
+                 "control_cycle_ms", "train_step_ms"):
         assert name in values and values[name][1] == ["ms"], (name, lines)
         assert values[name][0] > 0 or name == "detector_ms", (name, lines)  # a threshold test can print 0.0 ms
     assert values["control_cycle_ms"][0] >= values["encoder_ms"][0]  # a cycle encodes, samples and forecasts
     assert values["train_samples_per_s"][1] == [] and values["train_samples_per_s"][0] > 0
+
+
+def test_cli_bench_compares_with_the_dp3_baseline_in_the_same_process(tmp_path, capsys):
+    """By default the recipe and its DP3 baseline (world model off) are timed one after the other, with ratios."""
+    from ddp.cli import main
+
+    recipe = _cli_recipe(tmp_path)
+    assert main(["bench", recipe, "--repeats", "1"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert "dp3_baseline" in lines[1] and "ratio" in lines[1]
+    rows = {line.split()[0]: line.split()[1:] for line in lines[2:]}
+    assert rows["world_model_imagine_ms"][1:] == ["-", "-"]  # the baseline has no world model
+    for name in ("obs_to_action_ms", "control_cycle_ms", "train_step_ms", "train_samples_per_s"):
+        mine, base, ratio = float(rows[name][0]), float(rows[name][1]), rows[name][2]
+        assert base > 0 and ratio.endswith("x")
+        assert float(ratio[:-1]) == pytest.approx(mine / base, rel=0.1, abs=0.01)  # printed values are rounded
+
