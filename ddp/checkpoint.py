@@ -94,3 +94,18 @@ def describe_mismatch(model: torch.nn.Module, weights: dict, limit: int = 3) -> 
     parts = [part(label, items) for label, items in (("missing", missing), ("unexpected", unexpected),
                                                       ("shape mismatches (checkpoint vs model)", shapes)) if items]
     return "; ".join(parts)
+
+
+def stored_recipe(path, state: dict) -> dict:
+    """The recipe a checkpoint was trained with, as a mapping; one CheckpointError line if there is none."""
+    from ddp.recipe import load_yaml
+
+    if not isinstance(state.get("recipe"), str):
+        raise CheckpointError(f"{path}: the checkpoint holds no recipe (it was not written by ddp train)")
+    try:
+        recipe = load_yaml(state["recipe"])
+    except Exception:  # noqa: BLE001 - any unreadable stored recipe
+        raise CheckpointError(f"{path}: the stored recipe is not readable YAML") from None
+    if not isinstance(recipe, dict):
+        raise CheckpointError(f"{path}: the stored recipe is not a mapping (got {type(recipe).__name__})")
+    return recipe

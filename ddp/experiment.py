@@ -86,6 +86,7 @@ class Experiment:
         ``state`` is the checkpoint already read from ``path`` (to avoid reading it twice).
         """
         from ddp.checkpoint import describe_mismatch
+        from ddp.safety import first_nonfinite
 
         state = load_checkpoint(path) if state is None else state
         if not isinstance(state.get("model"), dict):
@@ -97,7 +98,7 @@ class Experiment:
         mismatch = describe_mismatch(self.model, weights)
         if mismatch:
             raise CheckpointError(f"{path}: weights do not fit this recipe's model: {mismatch}")
-        bad = next((k for k, v in weights.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())), None)
+        bad = first_nonfinite(weights.items())
         if bad is not None:  # checked before loading: the model keeps its weights
             raise CheckpointError(f"{path}: the {'EMA ' if weights is not state['model'] else ''}weights hold NaN "
                                   f"or inf ({bad}): refusing to load them")
@@ -205,19 +206,12 @@ def experiment_from_checkpoint(path: str | os.PathLike, ema: bool = True, *, tru
     """
     import warnings
 
-    from ddp.recipe import apply_overrides, load_yaml
+    from ddp.checkpoint import stored_recipe
+    from ddp.recipe import apply_overrides
 
     state = load_checkpoint(path)
-    if not isinstance(state.get("recipe"), str):
-        raise CheckpointError(f"{path}: the checkpoint holds no recipe (it was not written by ddp train)")
-    try:
-        stored = load_yaml(state["recipe"])
-    except Exception:  # noqa: BLE001 - any unreadable stored recipe
-        raise CheckpointError(f"{path}: the stored recipe is not readable YAML") from None
-    if not isinstance(stored, dict):
-        raise CheckpointError(f"{path}: the stored recipe is not a mapping (got {type(stored).__name__})")
     overrides = list(overrides)
-    data = apply_overrides(stored, overrides)
+    data = apply_overrides(stored_recipe(path, state), overrides)
     modules = data.get("plugins") or []
     if modules and not trust_plugins:
         warnings.warn(f"{path}: not importing the plugin modules its recipe lists ({', '.join(map(str, modules))}); "

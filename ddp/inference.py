@@ -22,14 +22,14 @@ env's hold action: zero motion, gripper command unchanged; ``("ddp", "held")``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
 
 from ddp.contracts import check as check_contract
 from ddp.keys import KeyedModule
-from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite_parameter
+from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite
 
 MIN_OFFSET = 1e-6  # metres: smaller tracked offsets mean "did not move"
 
@@ -57,7 +57,6 @@ class EnvState:
     recovered: torch.Tensor | None = None  # objects already brought back
     subtask: int = 0
     subtask_start: int = 0
-    done_subtasks: list = field(default_factory=list)
     last_action: torch.Tensor | None = None  # the last finite action emitted (what "hold" repeats)
 
 
@@ -100,7 +99,7 @@ class DDPController(KeyedModule):
                 check_contract("trigger", sub.trigger, name=type(sub.trigger).__name__)
         if on_nonfinite not in ("raise", "hold"):
             raise ValueError(f"on_nonfinite must be 'raise' or 'hold'; got {on_nonfinite!r}")
-        bad = first_nonfinite_parameter(model)
+        bad = first_nonfinite([*model.named_parameters(), *model.named_buffers()])
         if bad is not None:
             raise NonFiniteError(f"the model's '{bad}' holds NaN or inf: it cannot drive a robot")
         if detector.needs_discrepancy and not model.has_world_model:
@@ -242,7 +241,6 @@ class DDPController(KeyedModule):
                 s.recovered |= recovered
                 if bool(recovered.any()):
                     s.recheck_after = chunk_index[b]  # re-evaluate D_R-I once the shift is observed
-            s.done_subtasks.append(s.subtask)
             s.subtask, s.subtask_start = s.subtask + 1, chunk_index[b]
 
         # 1. OOD detection & tracking

@@ -74,9 +74,10 @@ def require_finite(name: str, value, where: str) -> None:
         raise NonFiniteError(f"{where}: refused a non-finite {name} ({bad} of {arr.size} values are NaN or inf)")
 
 
-def first_nonfinite_parameter(module: torch.nn.Module) -> str | None:
-    """The name of the first parameter or buffer holding NaN or inf, or None."""
-    for name, t in [*module.named_parameters(), *module.named_buffers()]:
+def first_nonfinite(named_tensors) -> str | None:
+    """The name of the first float tensor holding NaN or inf in ``(name, tensor)`` pairs (a module's
+    parameters and buffers, a state dict's items), or None."""
+    for name, t in named_tensors:
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             return name
     return None

@@ -16,12 +16,12 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from ddp.checkpoint import load_checkpoint, save_checkpoint
+from ddp.checkpoint import load_checkpoint, save_checkpoint, stored_recipe
 from ddp.data.sequence import SequenceDataset
 from ddp.errors import CheckpointError, RecipeError
 from ddp.models.ema import EMA
 from ddp.preemption import interruption, signals_deferred, stop_signals
-from ddp.recipe import load_yaml, recipe_changes
+from ddp.recipe import recipe_changes
 from ddp.run_dir import RunLock, remove_leftovers, trim_csv_logs
 
 LAST = "last.pt"
@@ -68,13 +68,10 @@ def check_resumable(path: Path, state: dict, current: dict) -> None:
     missing = [k for k in RESUME_KEYS if k not in state]
     if missing:
         raise CheckpointError(f"{path}: cannot resume: the checkpoint lacks {', '.join(missing)}")
-    try:
-        stored = load_yaml(state["recipe"])
-    except Exception:  # noqa: BLE001 - any unreadable stored recipe
-        raise CheckpointError(f"{path}: cannot resume: the stored recipe is not readable YAML") from None
+    stored = stored_recipe(path, state)  # a stored recipe that is not a mapping no longer passes as "no change"
     task = current.get("task", {})
     changes = {
-        k: v for k, v in recipe_changes(stored if isinstance(stored, dict) else {}, current).items()
+        k: v for k, v in recipe_changes(stored, current).items()
         if not any(k == r or k.startswith(r + ".") for r in RESUMABLE)
         # an env section now renders what task says (older recipes stored the env's own default)
         and not (k in ("env.num_points", "env.point_dim") and v[1] == task.get(k.split(".")[1]))

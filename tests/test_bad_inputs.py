@@ -6,7 +6,6 @@ and nothing lost: the shared trained run's files are byte-identical afterwards.
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import pickle
 import shutil
@@ -17,21 +16,11 @@ import pytest
 import torch
 import yaml
 
-from conftest import TINY
+from conftest import runnable
 from ddp.cli import main
 
 
-def tiny(**sections) -> dict:
-    r = copy.deepcopy(TINY)
-    r["train"].update(max_steps=2, epochs=1)
-    r["eval"] = {"episodes": 1, "protocols": ["id"], "max_steps": 16}
-    r["controller"] = {"detector": {"name": "never"}, "tracker": None, "recovery": {"name": "none"}}
-    for k, v in sections.items():
-        if isinstance(v, dict) and isinstance(r.get(k), dict):
-            r[k].update(v)
-        else:
-            r[k] = v
-    return r
+tiny = runnable  # TINY trained for 2 steps, 1 id episode; a mapping updates a section
 
 
 def write(path: Path, recipe: dict | str) -> str:
@@ -149,6 +138,9 @@ CASES = [
      "not a readable checkpoint"),
     ("resume-foreign-dict", lambda t, tr: (lambda r, run: (fake_checkpoint(run / "last.pt", {"weights": torch.zeros(2)}), ["train", r])[1])(*copy_run(tr, t)),
      "not a ddp checkpoint"),
+    ("resume-stored-recipe-not-a-mapping", lambda t, tr: (lambda r, run: (fake_checkpoint(run / "last.pt", {**ckpt_state(tr), "recipe": "- a\n"}),
+                                                                         ["train", r])[1])(*copy_run(tr, t)),
+     "the stored recipe is not a mapping"),
     ("checkpoint-is-directory", lambda t, tr: (lambda r, run: ((run / "last.pt").unlink(), (run / "last.pt").mkdir(), ["train", r])[2])(*copy_run(tr, t)),
      "last.pt"),
     # -------- evaluation
