@@ -36,6 +36,51 @@ TINY = {
 }
 
 
+def fit_normalizer(exp):
+    """Fit the model's normaliser on the recipe's demonstrations (as training does first); returns ``exp``."""
+    eps = exp.episodes()
+    exp.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
+    return exp
+
+
+DELTA = [0.2, 0.0, 0.0]  # the synthetic cube's displacement at the start of chunk 1 (seen at cycle 2)
+
+
+def displaced_exp(recipe: dict, **controller):
+    """``recipe`` on the synthetic env displaced by DELTA at chunk 1 (8 chunks of 8 steps), with the oracle
+    detector and tracker, target-specific recovery at chunk 4 (``controller`` updates that), normaliser fitted."""
+    from ddp import build
+
+    recipe["env"].update(displacement=True, displacement_chunk=1, displacement_delta=DELTA, max_episode_steps=64)
+    recipe["controller"] = {
+        "detector": {"name": "oracle"},
+        "tracker": {"name": "oracle"},
+        "recovery": {"name": "target_specific"},
+        "subtasks": [{"target": 0, "trigger": {"name": "chunk_index", "chunk": 4}}, {"target": None}],
+        **controller,
+    }
+    return fit_normalizer(build(recipe))
+
+
+def runnable(**sections) -> dict:
+    """TINY that trains and evaluates in seconds: 2 steps, 1 id episode of 16 steps, the base controller.
+
+    A mapping in ``sections`` updates that section; anything else replaces it.
+    """
+    import copy
+
+    r = copy.deepcopy(TINY)
+    r["train"].update(max_steps=2, epochs=1)
+    r["eval"] = {"episodes": 1, "protocols": ["id"], "max_steps": 16}
+    r["controller"] = {"detector": {"name": "never"}, "tracker": None, "recovery": {"name": "none"}}
+    for k, v in sections.items():
+        if isinstance(v, dict) and isinstance(r.get(k), dict):
+            r[k].update(v)
+        else:
+            r[k] = v
+    return r
+
+
 @pytest.fixture
 def tiny_recipe():
     import copy

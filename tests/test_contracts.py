@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import ddp
+from conftest import fit_normalizer
 from ddp import build, registry
 from ddp.contracts import CONTRACTS, check, members
 from ddp.errors import PluginError
@@ -109,8 +110,7 @@ def test_the_controller_reads_renamed_detector_and_tracker_keys(tiny_recipe):
     tiny_recipe["controller"] = {"detector": {"name": "oracle"}, "tracker": {"name": "oracle"},
                                  "recovery": {"name": "none"}}
     exp = build(tiny_recipe)
-    eps = exp.episodes()
-    exp.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
+    fit_normalizer(exp)
     from ddp.evaluate import make_chunked_env
 
     ctrl = exp.make_controller()

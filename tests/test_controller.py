@@ -7,27 +7,17 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
+from conftest import DELTA, displaced_exp
 from ddp import build
 from ddp.envs.chunked import ChunkedEnv
 from ddp.envs.synthetic_reach import SyntheticReachEnv, SyntheticReachEnvConfig
 from ddp.evaluate import make_chunked_env
 
-DELTA = [0.2, 0.0, 0.0]
 
 
 @pytest.fixture
 def exp(tiny_recipe):
-    tiny_recipe["env"].update(displacement=True, displacement_chunk=1, displacement_delta=DELTA, max_episode_steps=64)
-    tiny_recipe["controller"] = {
-        "detector": {"name": "oracle"},
-        "tracker": {"name": "oracle"},
-        "recovery": {"name": "target_specific"},
-        "subtasks": [{"target": 0, "trigger": {"name": "chunk_index", "chunk": 4}}, {"target": None}],
-    }
-    e = build(tiny_recipe)
-    eps = e.episodes()
-    e.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
-    return e
+    return displaced_exp(tiny_recipe)
 
 
 def rollout(exp, ctrl, chunks=8, **env_over):

@@ -10,29 +10,15 @@ import numpy as np
 import pytest
 import torch
 
-from ddp import build
+from conftest import DELTA, displaced_exp
 from ddp.evaluate import env_overrides, make_chunked_env
 from ddp.protocols.base import get_protocol
 
-DELTA = [0.2, 0.0, 0.0]  # the cube moves at the start of chunk 1; the controller sees it at cycle 2
 CHUNKS = 8  # max_episode_steps 64 / action_steps 8
 ZERO = torch.zeros(3)
 
 
-def make_exp(recipe, **controller):
-    """The tiny recipe on the displaced synthetic env, with the normaliser fit on its demos."""
-    recipe["env"].update(displacement=True, displacement_chunk=1, displacement_delta=DELTA, max_episode_steps=64)
-    recipe["controller"] = {
-        "detector": {"name": "oracle"},
-        "tracker": {"name": "oracle"},
-        "recovery": {"name": "target_specific"},
-        "subtasks": [{"target": 0, "trigger": {"name": "chunk_index", "chunk": 4}}, {"target": None}],
-        **controller,
-    }
-    e = build(recipe)
-    eps = e.episodes()
-    e.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
-    return e
+make_exp = displaced_exp  # the tiny recipe on the displaced synthetic env, normaliser fitted
 
 
 def rollout(exp, policy, env=None, **env_over):

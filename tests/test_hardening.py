@@ -14,10 +14,9 @@ import time
 from pathlib import Path
 
 import pytest
-import torch
 import yaml
 
-from conftest import ROOT, TINY
+from conftest import ROOT, runnable
 from ddp import build, registry
 from ddp.checkpoint import load_checkpoint, save_checkpoint
 from ddp.errors import CheckpointError, RecipeError
@@ -26,11 +25,8 @@ from ddp.run_dir import RunDirBusy, RunLock
 
 
 def tiny(tmp_path: Path, **train) -> dict:
-    r = copy.deepcopy(TINY)
-    r["train"].update(output_dir=str(tmp_path / "run"), epochs=1000, checkpoint_every_epochs=1000, **train)
-    r["eval"] = {"episodes": 1, "protocols": ["id"], "max_steps": 16}
-    r["controller"] = {"detector": {"name": "never"}, "tracker": None, "recovery": {"name": "none"}}
-    return r
+    return runnable(train={"output_dir": str(tmp_path / "run"), "epochs": 1000, "checkpoint_every_epochs": 1000,
+                           "max_steps": None, **train})
 
 
 def steps_logged(run: Path) -> list[int]:

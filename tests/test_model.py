@@ -4,6 +4,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from conftest import fit_normalizer
 from ddp import build
 from ddp.models.ema import ema_decay
 from ddp.schema import EMAConfig
@@ -20,8 +21,7 @@ def batch_of(exp, batch_size=6, seed=0):
 @pytest.fixture
 def exp(tiny_recipe):
     e = build(tiny_recipe)
-    eps = e.episodes()
-    e.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
+    fit_normalizer(e)
     return e
 
 

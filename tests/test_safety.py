@@ -7,6 +7,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from conftest import fit_normalizer
 from ddp import build
 from ddp.envs.chunked import ChunkedEnv
 from ddp.envs.synthetic_reach import SyntheticReachEnv, SyntheticReachEnvConfig
@@ -18,8 +19,7 @@ def _exp(tiny_recipe, **controller):
     tiny_recipe["controller"] = {"detector": {"name": "discrepancy", "tau": 1e9}, "tracker": None,
                                  "recovery": {"name": "none"}, **controller}
     e = build(tiny_recipe)
-    eps = e.episodes()
-    e.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
+    fit_normalizer(e)
     return e
 
 

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 
+from conftest import fit_normalizer
 from ddp import build
 from ddp.separability import auroc, first_above, format_report, plot_separability, separability
 
@@ -36,8 +37,7 @@ def test_first_above_skips_nan():
 def test_report_on_the_synthetic_env(tiny_recipe, tmp_path):
     tiny_recipe["env"].update(displacement_chunk=1, displacement_delta=[0.2, 0.0, 0.0], max_episode_steps=32)
     exp = build(tiny_recipe)
-    eps = exp.episodes()
-    exp.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
+    fit_normalizer(exp)
     rep = separability(exp, episodes=2, tau=0.5, progress=False)
     assert rep["tau"] == 0.5 and not rep["tau_calibrated"]
     assert len(rep["discrepancy"]["id"]) == 2 and len(rep["discrepancy"]["ood_base"]) == 2

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 import yaml
 from torch.optim.optimizer import register_optimizer_step_pre_hook
 
-from conftest import TINY
+from conftest import TINY, fit_normalizer
 from ddp import build
 from ddp.checkpoint import load_checkpoint
 
@@ -294,8 +294,7 @@ def test_parallel_evaluation_runs_the_same_seeded_episodes_as_serial(tiny_recipe
     import ddp.eval_runner as runner
 
     exp = build(tiny_recipe)
-    eps = exp.episodes()
-    exp.model.normalizer.fit({k: eps.steps[k] for k in ("action", "agent_pos", "point_cloud")})
+    fit_normalizer(exp)
     overrides = {"max_episode_steps": 16}  # 2 chunks per episode
     orig_summarise = runner._summarise
     first_obs = []
