@@ -9,6 +9,14 @@ Observations are the base env's stacked over the last M steps
 last step, ``success`` = any success so far in the episode, ``reward`` = the
 chunk's sum, and ``chunk_index`` (chunks executed since reset).
 
+The chunk and the frame stack are torchrl's own transforms on the base env:
+``UnsqueezeTransform`` + ``CatFrames(N=M)`` stack the last M frames (the
+reset frame repeated at the start, as ``padding="same"`` does) and
+``MultiAction`` runs the N actions, skipping the rest of a chunk once an
+inner step is done. What ``ChunkedEnv`` adds on top: the end-effector
+shift before the chunk, the whole-chunk finite check, the episode's
+success so far, the chunk counter and the per-step video frames.
+
 When the base env's config has ``obs_every`` / ``obs_history`` fields they
 are set to N / M, so point clouds are rendered only for the frames the
 policy consumes.
@@ -23,20 +31,15 @@ from __future__ import annotations
 import dataclasses
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, TransformedEnv
+from torchrl.envs.transforms import CatFrames, Compose, MultiAction, Transform, UnsqueezeTransform
 
 from ddp.safety import require_finite
 from ddp.video import ChunkLabel, EpisodeRecorder, VideoSettings
 
 STACKED = ("point_cloud", "agent_pos")
-
-
-def render_due(t: int, obs_every: int, obs_history: int) -> bool:
-    """Whether an env configured with ``obs_every`` / ``obs_history`` renders after ``t`` actions:
-    the last ``obs_history`` frames of every ``obs_every``-step chunk (and the chunk start)."""
-    return t % obs_every == 0 or t % obs_every > obs_every - obs_history
 
 
 def chunk_render_config(config, action_steps: int, obs_steps: int):
@@ -45,6 +48,37 @@ def chunk_render_config(config, action_steps: int, obs_steps: int):
     if {"obs_every", "obs_history"} <= names:
         return dataclasses.replace(config, obs_every=action_steps, obs_history=obs_steps)
     return config
+
+
+class _EachStep(Transform):
+    """Calls ``callback(next_tensordict)`` after every inner step of a chunk (placed before ``MultiAction``)."""
+
+    def __init__(self, callback):
+        super().__init__()
+        self.callback = callback
+
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
+        self.callback(next_tensordict)
+        return next_tensordict
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return tensordict_reset
+
+
+def stacked_chunks(base: EnvBase, obs_steps: int, each_step=None) -> TransformedEnv:
+    """``base`` seen through torchrl's transforms: the last ``obs_steps`` frames of ``point_cloud`` /
+    ``agent_pos`` stacked on a new leading dim, and an ``[N, A]`` action run as N steps
+    (``each_step(next_td)`` after each)."""
+    obs = base.observation_spec.keys()
+    transforms = []
+    for key in STACKED:
+        if key in obs:
+            dim = -1 - len(base.observation_spec[key].shape)
+            transforms += [UnsqueezeTransform(dim=dim, in_keys=[key]), CatFrames(N=obs_steps, dim=dim, in_keys=[key])]
+    if each_step is not None:
+        transforms.append(_EachStep(each_step))
+    transforms.append(MultiAction(stack_rewards=True))
+    return TransformedEnv(base, Compose(*transforms))
 
 
 class ChunkedEnv(EnvBase):
@@ -62,6 +96,7 @@ class ChunkedEnv(EnvBase):
         self.action_steps = action_steps
         self.obs_steps = obs_steps
         self.safe_lift = safe_lift
+        self._chunks = stacked_chunks(base, obs_steps, self._after_inner_step)
         obs = base.observation_spec
         spec = {}
         for key in STACKED:
@@ -85,26 +120,21 @@ class ChunkedEnv(EnvBase):
         )
         self.reward_spec = base.reward_spec.clone()
         self.done_spec = base.full_done_spec.clone()
-        self._frames: list[TensorDictBase] = []
         self._chunk = 0
         self._success = False
+        self._label: ChunkLabel | None = None
 
     def _set_seed(self, seed: int | None) -> None:
         self.base.set_seed(seed)
 
     def _observation(self, last: TensorDictBase) -> TensorDictBase:
-        frames = self._frames[-self.obs_steps :]
-        out = last.exclude(*STACKED, "reward", "done", "terminated", "truncated", "success")
-        for key in STACKED:
-            if key in last.keys():
-                out.set(key, torch.stack([f[key] for f in frames], 0))
+        out = last.exclude("reward", "done", "terminated", "truncated", "success")
         out.set("success", torch.tensor([self._success], device=self.device))
         out.set("chunk_index", torch.tensor([self._chunk], dtype=torch.int64, device=self.device))
         return out
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        first = self.base.reset()
-        self._frames = [first] * self.obs_steps
+        first = self._chunks.reset()
         self._chunk = 0
         self._success = False
         if self.recorder is not None:
@@ -115,6 +145,13 @@ class ChunkedEnv(EnvBase):
             out.set(key, torch.zeros(1, dtype=torch.bool, device=self.device))
         return out
 
+    def _after_inner_step(self, step: TensorDictBase) -> None:
+        """After each action of the chunk: the episode's success so far, the video frame."""
+        self._success = self._success or bool(step.get("success", torch.zeros(1, dtype=torch.bool)).any())
+        if self._label is not None:
+            self._label.success = self._success
+            self._record(self._label)
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shift = tensordict.get("ee_shift", None)
         # the whole chunk is checked before any of it runs: no half-executed chunk ends in a refusal
@@ -123,23 +160,13 @@ class ChunkedEnv(EnvBase):
             require_finite("end-effector shift", shift, "chunked env")
         if shift is not None and bool(shift.abs().max() > 0):
             self.base.shift_end_effector(shift.detach().cpu().numpy(), safe_lift=self.safe_lift)
-        actions = tensordict.get("action")
-        reward = torch.zeros(self.reward_spec.shape, device=self.device)
-        label = ChunkLabel.from_tensordict(tensordict, self._chunk, self._success) if self.recorder is not None else None
-        last = None
-        for a in actions:
-            step = self.base.step(TensorDict({"action": a}, batch_size=[], device=self.device))
-            last = step.get("next")
-            self._frames.append(last)
-            reward = reward + last.get("reward", torch.zeros_like(reward))
-            self._success = self._success or bool(last.get("success", torch.zeros(1, dtype=torch.bool)).any())
-            if label is not None:
-                label.success = self._success
-                self._record(label)
-            if bool(last.get("done").any()):
-                break
-        self._frames = self._frames[-self.obs_steps :]
+        if self.recorder is not None:
+            self._label = ChunkLabel.from_tensordict(tensordict, self._chunk, self._success)
+        inner = tensordict.select("action").exclude("next")
+        last = self._chunks.step(inner).get("next")
+        self._label = None
         self._chunk += 1
+        reward = last.get("reward").reshape(-1, *self.reward_spec.shape).sum(0)
         out = self._observation(last)
         out.set("reward", reward)
         for key in ("done", "terminated", "truncated"):

@@ -71,19 +71,13 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from dataclasses import dataclass  # noqa: E402
-from typing import Literal  # noqa: E402
 
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
-from tensordict import TensorDict, TensorDictBase  # noqa: E402
-from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
-from torchrl.envs import EnvBase  # noqa: E402
 
-from ddp.envs.cloud_state import CloudStateMixin  # noqa: E402
-from ddp.envs.disturbances import OCCLUSION_MODES, Displacement, Occlusion  # noqa: E402
+from ddp.envs.base import ObservationOptions  # noqa: E402
+from ddp.envs.disturbances import Displacement  # noqa: E402
 from ddp.envs.metaworld_tasks import METAWORLD_V3_TASKS, PAPER_TASKS, MetaWorldTask, env_name  # noqa: E402
-from ddp.envs.mujoco_render import SceneRenderer, use_egl  # noqa: E402
-from ddp.envs.seeding import EpisodeSeeds  # noqa: E402
+from ddp.envs.mujoco_render import CloudCamera, MujocoCloudEnv, SceneRenderer, use_egl  # noqa: E402
 from ddp.errors import suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
 from ddp.safety import HoldSpec, require_finite  # noqa: E402
@@ -118,7 +112,7 @@ def _train_tasks(task: str, seed: int) -> tuple:
 
 
 @dataclass
-class MetaWorldEnvConfig:
+class MetaWorldEnvConfig(ObservationOptions):
     """Options of the ``metaworld`` env (see the module docstring).
 
     Attributes:
@@ -149,26 +143,18 @@ class MetaWorldEnvConfig:
     task: str = "button-press"
     seed_tasks: int = 0
     task_indices: tuple[int, int] = (0, NUM_TRAIN_TASKS)
-    max_episode_steps: int = 200
-    terminate_on_success: bool = False
-    render_point_cloud: bool = True
     image_size: int = 84
     camera: str = "corner2"
     camera_pos: tuple[float, float, float] | None = (0.6, 0.295, 0.8)
     crop_min: tuple[float, float, float] = (-0.6, 0.3, -0.01)
     crop_max: tuple[float, float, float] = (0.6, 1.1, 0.7)
-    num_points: int = 512
     obs_every: int = 1
     obs_history: int = 1
-    chunk_len: int = 8
     displacement: bool = False
     displacement_chunk: int | None = None
     displacement_delta: tuple[float, float, float] | None = None
     oracle_tracking: bool = False
     settle_steps: int = 10
-    occlusion_chunk: int | None = None
-    occlusion_chunks: int = 1
-    occlusion_mode: Literal["zeros", "drop", "noise"] = "zeros"
 
     def __post_init__(self):
         if self.task.endswith("-v3"):
@@ -180,17 +166,9 @@ class MetaWorldEnvConfig:
         start, stop = self.task_indices
         if not 0 <= start < stop <= NUM_TRAIN_TASKS:
             raise ValueError(f"task_indices must satisfy 0 <= start < stop <= 50; got {tuple(self.task_indices)}")
-        for name in ("max_episode_steps", "image_size", "num_points", "obs_every", "obs_history", "chunk_len"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1; got {getattr(self, name)}")
+        self.check_observation_options(positive=("image_size",))
         if self.image_size < 8:
             raise ValueError(f"image_size must be >= 8 pixels; got {self.image_size}")
-        if self.obs_history > self.obs_every:
-            raise ValueError(f"obs_history ({self.obs_history}) must be <= obs_every ({self.obs_every})")
-        if len(self.crop_min) != 3 or len(self.crop_max) != 3:
-            raise ValueError(f"crop_min and crop_max need 3 entries; got {self.crop_min} and {self.crop_max}")
-        if any(lo >= hi for lo, hi in zip(self.crop_min, self.crop_max)):
-            raise ValueError(f"crop_min must be below crop_max on every axis; got {self.crop_min} and {self.crop_max}")
         if self.settle_steps < 0:
             raise ValueError(f"settle_steps must be >= 0; got {self.settle_steps}")
         overrides = self.displacement_chunk is not None or self.displacement_delta is not None
@@ -207,14 +185,6 @@ class MetaWorldEnvConfig:
             raise ValueError(f"displacement_chunk must be >= 0; got {self.displacement_chunk}")
         if self.displacement_delta is not None and len(self.displacement_delta) != 3:
             raise ValueError(f"displacement_delta needs 3 entries; got {self.displacement_delta}")
-        if self.occlusion_chunk is not None and self.occlusion_chunk < 0:
-            raise ValueError(f"occlusion_chunk must be >= 0; got {self.occlusion_chunk}")
-        if self.occlusion_chunks < 1:
-            raise ValueError(f"occlusion_chunks must be >= 1; got {self.occlusion_chunks}")
-        if self.occlusion_mode not in OCCLUSION_MODES:
-            raise ValueError(f"occlusion_mode must be one of {OCCLUSION_MODES}; got {self.occlusion_mode!r}")
-        if self.occlusion_chunk is not None and not self.render_point_cloud:
-            raise ValueError("occlusion_chunk needs render_point_cloud=True (it corrupts the point cloud)")
 
     @property
     def task_spec(self) -> MetaWorldTask | None:
@@ -226,28 +196,24 @@ class MetaWorldEnvConfig:
             return None
         return self.task_spec.displacement.replace(chunk=self.displacement_chunk, delta=self.displacement_delta)
 
-    def occlusion_schedule(self) -> Occlusion | None:
-        if self.occlusion_chunk is None:
-            return None
-        return Occlusion(self.occlusion_chunk, self.occlusion_chunks, self.occlusion_mode)
-
 
 @register("env", "metaworld", config=MetaWorldEnvConfig)
-class MetaWorldEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
+class MetaWorldEnv(MujocoCloudEnv):
     """A MetaWorld v3 task with DP3 point clouds and the paper's OOD disturbances."""
 
+    env_name = "metaworld env"
+    action_dim = 4
+    agent_pos_dim = 9
     #: holding still: xyz deltas at 0, the gripper (an absolute effort, -1 open after reset) unchanged
     action_hold = HoldSpec(absolute=(3,), reset={3: -1.0})
 
     def __init__(self, config: MetaWorldEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
         cfg = MetaWorldEnvConfig() if config is None else config
         metaworld, mujoco = _import_sim()
-        super().__init__(device=device, batch_size=torch.Size([]))
-        self.config = cfg
+        super().__init__(cfg, seed=seed, device=device)
         self._mj = mujoco
         self.task: MetaWorldTask | None = cfg.task_spec
         self._displacement_plan = cfg.displacement_schedule()
-        self._occlusion_plan = cfg.occlusion_schedule()
 
         self._train_tasks = _train_tasks(cfg.task, cfg.seed_tasks)
         self.sim = metaworld.env_dict.ALL_V3_ENVIRONMENTS[env_name(cfg.task)]()
@@ -256,9 +222,11 @@ class MetaWorldEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
         self._widen_goal_space()
         model = self.sim.model
 
-        self._cam = SceneRenderer(model).camera_id(cfg.camera)
+        self._renderer = SceneRenderer(model)  # depth for clouds, colour for videos (lazy)
+        cam = self._renderer.camera_id(cfg.camera)
         if cfg.camera_pos is not None:
-            model.cam_pos[self._cam] = cfg.camera_pos
+            model.cam_pos[cam] = cfg.camera_pos
+        self._camera = CloudCamera(self._renderer, cam, cfg) if cfg.render_point_cloud else None
         bodies = self.task.bodies if self.task is not None else ()
         self._body_ids = np.array([model.body(b).id for b in bodies], dtype=np.int64)
         self._hand = model.body("hand").id
@@ -268,92 +236,69 @@ class MetaWorldEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
         self._body_pos0 = model.body_pos.copy()
         self._site_pos0 = model.site_pos.copy()
 
-        self._renderer = SceneRenderer(model)  # depth for clouds, colour for videos (lazy)
-        self._init_cloud()
-
-        self._init_seeds(seed)
-        self._steps = 0
         self._task_index = cfg.task_indices[0]
-        self._rng = np.random.default_rng(0)
         self._state = np.zeros(39)
         self._displacement = np.zeros((len(bodies), 3))
         self._ee_offset = np.zeros(3)
         self._tracked = np.zeros(3)
-        self._make_specs(len(bodies))
+        self._build_specs()
 
-    # ------------------------------------------------------------------ specs
-    def _make_specs(self, num_bodies: int) -> None:
-        cfg, dev = self.config, self.device
-        vec = lambda *shape: Unbounded(shape=shape, dtype=torch.float32, device=dev)  # noqa: E731
-        flag = lambda: Categorical(2, shape=(1,), dtype=torch.bool, device=dev)  # noqa: E731
-        privileged = {
-            "state": vec(39),
-            "goal": vec(3),
-            "ee_offset": vec(3),
-            "task_index": Unbounded(shape=(1,), dtype=torch.int64, device=dev),
-            "occluded": flag(),
+    # ------------------------------------------------------------- the adapter
+    def _privileged_spec(self) -> dict:
+        spec = {
+            "state": self._vec_spec(39),
+            "goal": self._vec_spec(3),
+            "ee_offset": self._vec_spec(3),
+            "task_index": self._int_spec(1),
         }
-        if num_bodies:
-            privileged["object_pos"] = vec(num_bodies, 3)
-            privileged["displacement"] = vec(num_bodies, 3)
-        obs = {"agent_pos": vec(9), "success": flag(), "privileged": Composite(privileged, device=dev)}
-        if cfg.render_point_cloud:
-            obs["point_cloud"] = vec(cfg.num_points, 3)
-        self.observation_spec = Composite(obs, device=dev)
-        self.action_spec = Bounded(-1.0, 1.0, shape=(4,), dtype=torch.float32, device=dev)
-        self.reward_spec = vec(1)
-        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), device=dev)
+        if len(self._body_ids):
+            spec["object_pos"] = self._vec_spec(len(self._body_ids), 3)
+            spec["displacement"] = self._vec_spec(len(self._body_ids), 3)
+        return spec
 
-    # -------------------------------------------------------------- TorchRL API
-    def _reset(self, tensordict: TensorDictBase | None = None, seed: int | None = None, **kwargs) -> TensorDictBase:
-        cfg = self.config
-        seed = self._episode_seed(seed)
-        start, stop = cfg.task_indices
+    def _sim_reset(self, seed: int) -> None:
+        start, stop = self.config.task_indices
         self._task_index = start + seed % (stop - start)
         self.sim.set_task(self._train_tasks[self._task_index])
         self._widen_goal_space()
         model = self.sim.model
         model.body_pos[:] = self._body_pos0  # undo last episode's displacements
         model.site_pos[:] = self._site_pos0
-        state, _ = self.sim.reset()
-        self._state = state
-        self._rng = np.random.default_rng(abs(seed))
-        self._steps = 0
+        self._state, _ = self.sim.reset()
         self._displacement[:] = 0.0
         self._ee_offset[:] = 0.0
         self._tracked[:] = 0.0
-        self._reset_cloud()
-        return self._output(reward=None, success=False, terminated=False, truncated=False)
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        cfg = self.config
-        action = tensordict.get("action").detach().to("cpu", torch.float64).numpy().reshape(4)
-        require_finite("action", action, "metaworld env")
-        t = self._steps
-        plan = self._displacement_plan
+    def _before_action(self, t: int) -> None:
+        plan, cfg = self._displacement_plan, self.config
         if plan is not None:
             if t == plan.step(cfg.chunk_len):
                 self._apply_displacement(plan)
             if cfg.oracle_tracking and t == plan.snap_back_step(cfg.chunk_len):
                 self._snap_back()
-        state, reward, _, _, info = self.sim.step(np.clip(action, -1.0, 1.0))
-        self._state = state
-        self._steps = t + 1
-        self._update_cloud(self._steps)
-        success = bool(info["success"])
-        return self._output(
-            reward=float(reward),
-            success=success,
-            terminated=success and cfg.terminate_on_success,
-            truncated=self._steps >= cfg.max_episode_steps,
-        )
+
+    def _sim_step(self, action: np.ndarray) -> tuple[float, bool]:
+        self._state, reward, _, _, info = self.sim.step(np.clip(action, -1.0, 1.0))
+        return float(reward), bool(info["success"])
+
+    def _agent_pos(self) -> np.ndarray:
+        data = self.sim.data
+        right, left = self._fingers
+        return np.concatenate([data.xpos[self._hand], data.site_xpos[right], data.site_xpos[left]])
+
+    def _privileged(self) -> dict:
+        privileged = {
+            "state": self._f32(self._state),
+            "goal": self._f32(self.sim._target_pos),
+            "ee_offset": self._f32(self._ee_offset),
+            "task_index": self._int(self._task_index),
+        }
+        if len(self._body_ids):
+            privileged["object_pos"] = self._f32(self.sim.data.xpos[self._body_ids])
+            privileged["displacement"] = self._f32(self._displacement)
+        return privileged
 
     # ------------------------------------------------------- oracle interface
-    @property
-    def steps_done(self) -> int:
-        """Actions executed since the last reset."""
-        return self._steps
-
     @property
     def task_index(self) -> int:
         """Index of the current MT1 train task (initial state)."""
@@ -460,33 +405,3 @@ class MetaWorldEnv(EpisodeSeeds, CloudStateMixin, EnvBase):
         images come out with the table on top), so frames are flipped vertically."""
         cam = self._renderer.camera_id(camera or self.config.camera, what="video camera")
         return self._renderer.rgb(self.sim.data, cam, width, height, flip=True)
-
-    def _output(self, *, reward: float | None, success: bool, terminated: bool, truncated: bool) -> TensorDictBase:
-        data, dev = self.sim.data, self.device
-        f32 = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float32), device=dev)  # noqa: E731
-        flag = lambda b: torch.tensor([b], dtype=torch.bool, device=dev)  # noqa: E731
-        privileged = {
-            "state": f32(self._state),
-            "goal": f32(self.sim._target_pos),
-            "ee_offset": f32(self._ee_offset),
-            "task_index": torch.tensor([self._task_index], dtype=torch.int64, device=dev),
-            "occluded": flag(self._occluded),
-        }
-        if len(self._body_ids):
-            privileged["object_pos"] = f32(data.xpos[self._body_ids])
-            privileged["displacement"] = f32(self._displacement)
-        right, left = self._fingers
-        agent_pos = np.concatenate([data.xpos[self._hand], data.site_xpos[right], data.site_xpos[left]])
-        out = {
-            "agent_pos": f32(agent_pos),
-            "success": flag(success),
-            "privileged": privileged,
-            "done": flag(terminated or truncated),
-            "terminated": flag(terminated),
-            "truncated": flag(truncated),
-        }
-        if self.config.render_point_cloud:
-            out["point_cloud"] = torch.as_tensor(self._cloud.copy(), device=dev)
-        if reward is not None:
-            out["reward"] = torch.tensor([reward], dtype=torch.float32, device=dev)
-        return TensorDict(out, batch_size=torch.Size([]), device=dev)

@@ -2,6 +2,12 @@
 
 * :func:`use_egl` makes ``mujoco.Renderer`` use EGL when ``MUJOCO_GL=egl``,
   even if mujoco was imported (by torchrl, say) before the variable was set.
+* :class:`CloudCamera` is the DP3 cloud of one camera of a
+  :class:`SceneRenderer`: depth render, world frame, crop, farthest point
+  sampling (what the metaworld and adroit envs observe).
+* :class:`MujocoCloudEnv` is the :class:`ddp.envs.base.PointCloudEnv` of a
+  MuJoCo simulator ``sim`` (``.model``, ``.data``, ``.close()``) with one
+  :class:`CloudCamera`: the adapter part the metaworld and adroit envs share.
 * :class:`SceneRenderer` owns the renderers of one model: a depth renderer
   for point clouds (no shadows or multisampling, sites hidden so goal
   markers stay out of the cloud) and colour renderers for videos, one per
@@ -18,9 +24,10 @@ import weakref
 
 import numpy as np
 
+from ddp.envs.base import PointCloudEnv
 from ddp.errors import suggest
 
-__all__ = ["SceneRenderer", "use_egl"]
+__all__ = ["CloudCamera", "MujocoCloudEnv", "SceneRenderer", "use_egl"]
 
 _OPEN: weakref.WeakSet = weakref.WeakSet()
 _hook_registered = False
@@ -110,3 +117,36 @@ class SceneRenderer:
             if renderer is not None:
                 renderer.close()
         self._depth, self._depth_size, self._rgb = None, None, {}
+
+
+class CloudCamera:
+    """The point cloud one camera of ``renderer`` sees: ``config``'s ``image_size`` square depth image,
+    back-projected to the world frame, cropped to ``crop_min`` / ``crop_max``, ``num_points`` by FPS."""
+
+    def __init__(self, renderer: SceneRenderer, camera: int, config):
+        from ddp.envs.pointcloud import DepthToCloud
+
+        self.renderer, self.camera, self.size = renderer, camera, config.image_size
+        fovy = float(renderer.model.cam_fovy[camera])
+        self._to_cloud = DepthToCloud(self.size, self.size, fovy, config.crop_min, config.crop_max, config.num_points)
+
+    def __call__(self, data) -> np.ndarray:
+        """Float32 ``[num_points, 3]``; ``data.cam_xpos`` / ``cam_xmat`` follow a re-posed camera after any
+        ``mj_forward`` / ``mj_step`` (a reset runs one)."""
+        depth = self.renderer.depth(data, self.camera, self.size)
+        return self._to_cloud(depth, data.cam_xpos[self.camera], data.cam_xmat[self.camera])
+
+
+class MujocoCloudEnv(PointCloudEnv):
+    """A :class:`PointCloudEnv` whose cloud is one MuJoCo camera's: the subclass sets ``sim``,
+    ``_renderer`` (a :class:`SceneRenderer`) and ``_camera`` (a :class:`CloudCamera`, or None when
+    ``render_point_cloud`` is off)."""
+
+    def _render_cloud(self) -> np.ndarray:
+        return self._camera(self.sim.data)
+
+    def _close_sim(self) -> None:
+        for name in ("_renderer", "sim"):  # tolerant of a constructor that failed half-way
+            part = self.__dict__.get(name)
+            if part is not None:
+                part.close()

@@ -11,8 +11,10 @@ with the same interface as the MuJoCo suites: ``displacement`` moves the cube
 out of the ID region at the start of chunk ``displacement_chunk``;
 ``shift_end_effector`` is the tracking action; ``("privileged", ...)``
 holds ``object_pos`` / ``displacement`` [1, 3], ``ee_offset`` and
-``occluded``; ``occlusion_chunk`` blinds the camera (all points at the
-origin) for ``occlusion_chunks`` chunks.
+``occluded``; ``occlusion_chunk`` blinds the camera for ``occlusion_chunks``
+chunks (``occlusion_mode``: all points at the origin by default). The
+episode, observation and occlusion logic is the shared
+:class:`ddp.envs.base.PointCloudEnv`; this module is its NumPy adapter.
 """
 
 from __future__ import annotations
@@ -21,10 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
+from tensordict import TensorDictBase
 
+from ddp.envs.base import ObservationOptions, PointCloudEnv
 from ddp.registry import register
 from ddp.safety import DELTAS, require_finite
 
@@ -36,7 +37,23 @@ START = np.array([0.0, 0.5, 0.2])
 
 
 @dataclass
-class SyntheticReachEnvConfig:
+class SyntheticReachEnvConfig(ObservationOptions):
+    """Options of the ``synthetic_reach`` env (see the module docstring).
+
+    Attributes:
+        num_points: points per cloud (a fresh random sample of the scene every step).
+        max_episode_steps: steps before ``truncated``.
+        terminate_on_success: end the episode (``terminated``) at the first success.
+        render_point_cloud: return the ``point_cloud`` key.
+        cube_x, cube_y: the ID region of the cube's centre.
+        table_points, cube_points, gripper_points: surface samples per part before sub-sampling.
+        chunk_len: actions per chunk; disturbance chunk ``k`` starts at step ``k * chunk_len``.
+        displacement, displacement_chunk, displacement_delta: move the cube by the delta at the start
+            of the chunk (unless it is grasped).
+        occlusion_chunk, occlusion_chunks, occlusion_mode: blind chunks and their cloud.
+        crop_min, crop_max: the scene box (where ``noise`` / ``drop`` occlusion draws its points).
+    """
+
     num_points: int = 128
     max_episode_steps: int = 48
     cube_x: tuple[float, float] = (-0.1, 0.1)
@@ -44,18 +61,14 @@ class SyntheticReachEnvConfig:
     table_points: int = 256
     cube_points: int = 192
     gripper_points: int = 64
-    chunk_len: int = 8
     displacement: bool = False
     displacement_chunk: int = 1
     displacement_delta: tuple[float, float, float] = (0.2, 0.0, 0.0)
-    occlusion_chunk: int | None = None
-    occlusion_chunks: int = 1
+    crop_min: tuple[float, float, float] = (-0.5, 0.4, 0.0)
+    crop_max: tuple[float, float, float] = (0.5, 0.9, 0.3)
 
     def __post_init__(self):
-        if self.num_points < 1:
-            raise ValueError(f"num_points must be >= 1; got {self.num_points}")
-        if self.max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be >= 1; got {self.max_episode_steps}")
+        self.check_observation_options(positive=("table_points", "cube_points", "gripper_points"))
         if self.displacement_chunk < 0:
             raise ValueError(f"displacement_chunk must be >= 0; got {self.displacement_chunk}")
 
@@ -83,101 +96,49 @@ def expert_action(ee: np.ndarray, cube: np.ndarray, attached: bool) -> np.ndarra
 
 
 @register("env", "synthetic_reach", config=SyntheticReachEnvConfig)
-class SyntheticReachEnv(EnvBase):
+class SyntheticReachEnv(PointCloudEnv):
     """Point-cloud pick task (NumPy physics), seeded: the same seed gives the same episode."""
 
+    env_name = "synthetic_reach env"
+    action_dim = 4
+    agent_pos_dim = 9
     #: holding still: translations and gripper increments are deltas, all 0
     action_hold = DELTAS
 
     def __init__(self, config: SyntheticReachEnvConfig | None = None, *, seed: int | None = None, device="cpu"):
-        super().__init__(device=device, batch_size=torch.Size([]))
-        self.config = config or SyntheticReachEnvConfig()
-        self._next_seed = 0 if seed is None else int(seed)
-        vec = lambda *s: Unbounded(shape=s, dtype=torch.float32, device=device)  # noqa: E731
-        flag = lambda: Categorical(2, shape=(1,), dtype=torch.bool, device=device)  # noqa: E731
-        self.observation_spec = Composite(
-            point_cloud=vec(self.config.num_points, 3),
-            agent_pos=vec(9),
-            success=flag(),
-            privileged=Composite(
-                object_pos=vec(1, 3), displacement=vec(1, 3), ee_offset=vec(3), occluded=flag(),
-                attached=flag(), device=device,
-            ),
-            device=device,
-        )
-        self.action_spec = Bounded(-1.0, 1.0, shape=(4,), dtype=torch.float32, device=device)
-        self.reward_spec = vec(1)
-        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), device=device)
+        super().__init__(config or SyntheticReachEnvConfig(), seed=seed, device=device)
+        self.cube, self.ee = np.array([0.0, 0.65, CUBE_HALF]), START.copy()
+        self.grip, self.attached = 0.0, False
+        self.displacement, self.ee_offset = np.zeros(3), np.zeros(3)
+        self._build_specs()
 
-    # -------------------------------------------------------------- scene
-    def _occluded(self) -> bool:
-        c = self.config
-        if c.occlusion_chunk is None:
-            return False
-        chunk = self._steps // c.chunk_len
-        return c.occlusion_chunk <= chunk < c.occlusion_chunk + c.occlusion_chunks
-
-    def _cloud(self) -> np.ndarray:
-        c, rng = self.config, self._rng
-        if self._occluded():
-            return np.zeros((c.num_points, 3), dtype=np.float32)
-        table = np.stack(
-            [rng.uniform(-0.5, 0.5, c.table_points), rng.uniform(0.4, 0.9, c.table_points), np.zeros(c.table_points)], 1
-        )
-        cube = _box_surface(rng, self.cube, np.full(3, CUBE_HALF), c.cube_points)
-        width = 0.01 + 0.03 * (1.0 - self.grip)
-        grip = _box_surface(rng, self.ee + np.array([0, 0, 0.02]), np.array([width, 0.01, 0.02]), c.gripper_points)
-        cloud = np.concatenate([table, cube, grip], 0)
-        idx = rng.choice(cloud.shape[0], c.num_points, replace=cloud.shape[0] < c.num_points)
-        return cloud[idx].astype(np.float32)
-
-    def _output(self, reward=None, done=False, truncated=False) -> TensorDictBase:
-        width = 0.01 + 0.03 * (1.0 - self.grip)
-        fingers = np.concatenate([self.ee + [width, 0, 0], self.ee - [width, 0, 0]])
-        f32 = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float32), device=self.device)  # noqa: E731
-        flag = lambda b: torch.tensor([bool(b)], device=self.device)  # noqa: E731
-        out = {
-            "point_cloud": torch.from_numpy(self._cloud()).to(self.device),
-            "agent_pos": f32(np.concatenate([self.ee, fingers])),
-            "success": flag(self.success),
-            "privileged": {
-                "object_pos": f32(self.cube[None]),
-                "displacement": f32(self.displacement[None]),
-                "ee_offset": f32(self.ee_offset),
-                "occluded": flag(self._occluded()),
-                "attached": flag(self.attached),
-            },
-            "done": flag(done), "terminated": flag(False), "truncated": flag(truncated),
+    # ------------------------------------------------------------- the adapter
+    def _privileged_spec(self) -> dict:
+        return {
+            "object_pos": self._vec_spec(1, 3),
+            "displacement": self._vec_spec(1, 3),
+            "ee_offset": self._vec_spec(3),
+            "attached": self._flag_spec(),
         }
-        if reward is not None:
-            out["reward"] = torch.tensor([reward], dtype=torch.float32, device=self.device)
-        return TensorDict(out, batch_size=[], device=self.device)
 
-    # -------------------------------------------------------------- TorchRL API
-    def _set_seed(self, seed: int | None) -> None:
-        if seed is not None:
-            self._next_seed = int(seed)
+    def _episode_rng(self, seed: int) -> np.random.Generator:
+        return np.random.default_rng([abs(seed), 1])
 
-    def _reset(self, tensordict=None, **kwargs) -> TensorDictBase:
-        seed = self._next_seed
-        self._next_seed += 1
+    def _sim_reset(self, seed: int) -> None:
         c = self.config
-        init = np.random.default_rng([seed, 0])
+        init = np.random.default_rng([abs(seed), 0])
         self.cube = np.array([init.uniform(*c.cube_x), init.uniform(*c.cube_y), CUBE_HALF])
         self.ee = START + init.normal(0, 0.01, 3)
-        self._rng = np.random.default_rng([seed, 1])
-        self.grip, self.attached, self.success = 0.0, False, False
+        self.grip, self.attached = 0.0, False
         self.displacement = np.zeros(3)
         self.ee_offset = np.zeros(3)
-        self._steps = 0
-        return self._output()
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def _before_action(self, t: int) -> None:
         c = self.config
-        if c.displacement and self._steps == c.displacement_chunk * c.chunk_len and not self.attached:
+        if c.displacement and t == c.displacement_chunk * c.chunk_len and not self.attached:
             self.displace_objects(np.asarray(c.displacement_delta))
-        a = tensordict.get("action").detach().cpu().numpy().astype(np.float64)
-        require_finite("action", a, "synthetic_reach env")
+
+    def _sim_step(self, a: np.ndarray) -> tuple[float, bool]:
         self.ee = self.ee + ACTION_SCALE * np.clip(a[:3], -1, 1)
         self.ee[2] = max(self.ee[2], 0.0)
         self.grip = float(np.clip(self.grip + 0.5 * np.clip(a[3], -1, 1), 0.0, 1.0))
@@ -188,10 +149,40 @@ class SyntheticReachEnv(EnvBase):
             self.cube = np.array([self.cube[0], self.cube[1], CUBE_HALF])
         if self.attached:
             self.cube = self.ee.copy()
-        self.success = self.success or (self.attached and self.cube[2] > LIFT_HEIGHT)
-        self._steps += 1
-        truncated = self._steps >= c.max_episode_steps
-        return self._output(reward=float(self.success), done=truncated, truncated=truncated)
+        success = self._success or (self.attached and self.cube[2] > LIFT_HEIGHT)  # lifted once is a success
+        return float(success), success
+
+    def _render_due(self, t: int) -> bool:
+        return True  # a fresh sample every step: skipping one would shift the episode's random stream
+
+    def _render_cloud(self) -> np.ndarray:
+        c, rng = self.config, self._rng
+        table = np.stack(
+            [rng.uniform(-0.5, 0.5, c.table_points), rng.uniform(0.4, 0.9, c.table_points), np.zeros(c.table_points)], 1
+        )
+        cube = _box_surface(rng, self.cube, np.full(3, CUBE_HALF), c.cube_points)
+        width = 0.01 + 0.03 * (1.0 - self.grip)
+        grip = _box_surface(rng, self.ee + np.array([0, 0, 0.02]), np.array([width, 0.01, 0.02]), c.gripper_points)
+        cloud = np.concatenate([table, cube, grip], 0)
+        idx = rng.choice(cloud.shape[0], c.num_points, replace=cloud.shape[0] < c.num_points)
+        return cloud[idx].astype(np.float32)
+
+    def _agent_pos(self) -> np.ndarray:
+        width = 0.01 + 0.03 * (1.0 - self.grip)
+        return np.concatenate([self.ee, self.ee + [width, 0, 0], self.ee - [width, 0, 0]])
+
+    def _privileged(self) -> dict:
+        return {
+            "object_pos": self._f32(self.cube[None]),
+            "displacement": self._f32(self.displacement[None]),
+            "ee_offset": self._f32(self.ee_offset),
+            "attached": self._flag(self.attached),
+        }
+
+    @property
+    def success(self) -> bool:
+        """Whether the cube has been lifted in this episode."""
+        return self._success
 
     # -------------------------------------------------------------- disturbances and tracking
     def displace_objects(self, delta) -> None:

@@ -76,17 +76,14 @@ from typing import Literal  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from tensordict import TensorDict, TensorDictBase  # noqa: E402
-from torchrl.data import Bounded, Categorical, Composite, Unbounded  # noqa: E402
-from torchrl.envs import EnvBase  # noqa: E402
+from torchrl.data import Bounded, Composite, Unbounded  # noqa: E402
 
-from ddp.envs.chunked import render_due  # noqa: E402
-from ddp.envs.disturbances import OCCLUSION_MODES, Displacement, Occlusion  # noqa: E402
+from ddp.envs.base import ObservationOptions, PointCloudEnv  # noqa: E402
+from ddp.envs.disturbances import Displacement  # noqa: E402
 from ddp.envs.franka.control import ACTION_DIM, AGENT_POS_DIM, FrankaControl, agent_pos, mat_to_quat  # noqa: E402
 from ddp.envs.franka.pointcloud import FrameToCloud  # noqa: E402
 from ddp.envs.franka.tasks import TASKS, FrankaTask  # noqa: E402
 from ddp.envs.franka.tasks.base import CameraSpec  # noqa: E402
-from ddp.envs.seeding import EpisodeSeeds  # noqa: E402
 from ddp.errors import suggest  # noqa: E402
 from ddp.registry import register  # noqa: E402
 from ddp.safety import HoldSpec  # noqa: E402
@@ -97,7 +94,7 @@ Vec3 = tuple[float, float, float]
 
 
 @dataclass
-class FrankaEnvConfig:
+class FrankaEnvConfig(ObservationOptions):
     """Options of the ``franka`` env (see the module docstring).
 
     Attributes:
@@ -138,8 +135,6 @@ class FrankaEnvConfig:
     task: str = "stack"
     backend: Literal["sim", "real"] = "sim"
     max_episode_steps: int | None = None
-    terminate_on_success: bool = False
-    render_point_cloud: bool = True
     num_points: int = 2048
     presample: int = 10000
     image_height: int = 240
@@ -155,15 +150,11 @@ class FrankaEnvConfig:
     tracking_image_width: int = 160
     obs_every: int = 1
     obs_history: int = 1
-    chunk_len: int = 8
     displacement: bool = False
     displacement_chunks: list[int] | None = None
     displacement_deltas: list[Vec3] | None = None
     oracle_tracking: bool = False
     settle_steps: int = 30
-    occlusion_chunk: int | None = None
-    occlusion_chunks: int = 1
-    occlusion_mode: Literal["zeros", "drop", "noise"] = "zeros"
     control_period: float = 0.0625
     max_translation: float = 0.02
     max_rotation: float = 0.1
@@ -179,10 +170,6 @@ class FrankaEnvConfig:
         if self.backend not in ("sim", "real"):
             hint = suggest(self.backend, ["sim", "real"])
             raise ValueError(f"backend must be 'sim' or 'real'; got {self.backend!r}{hint}")
-        for name in ("num_points", "image_height", "image_width", "tracking_image_height", "tracking_image_width",
-                     "obs_every", "obs_history", "chunk_len", "settle_steps", "occlusion_chunks"):  # fmt: skip
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1; got {getattr(self, name)}")
         # task defaults are filled in, so that a dumped recipe (and a demo cache key) holds the values used
         task = TASKS[self.task]
         if self.max_episode_steps is None:
@@ -197,23 +184,19 @@ class FrankaEnvConfig:
             self.camera_lookat = tuple(task.policy_camera.lookat)
         if self.camera_fovy is None:
             self.camera_fovy = float(task.policy_camera.fovy)
-        if self.max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be >= 1 or null; got {self.max_episode_steps}")
+        self.check_observation_options(
+            positive=("image_height", "image_width", "tracking_image_height", "tracking_image_width", "settle_steps")
+        )
         if self.presample < 0:
             raise ValueError(f"presample must be >= 0; got {self.presample}")
         if min(self.image_height, self.image_width) < 8:
             raise ValueError(
                 f"image_height and image_width must be >= 8 pixels; got {self.image_height}x{self.image_width}"
             )
-        if self.obs_history > self.obs_every:
-            raise ValueError(f"obs_history ({self.obs_history}) must be <= obs_every ({self.obs_every})")
-        for name in ("camera_pos", "camera_lookat", "crop_min", "crop_max", "workspace_min", "workspace_max"):
+        for name in ("camera_pos", "camera_lookat", "workspace_min", "workspace_max"):
             value = getattr(self, name)
             if value is not None and len(value) != 3:
                 raise ValueError(f"{name} needs 3 entries (x, y, z); got {list(value)}")
-        lo, hi = self.crop_min, self.crop_max
-        if any(a >= b for a, b in zip(lo, hi)):
-            raise ValueError(f"crop_min must be below crop_max on every axis; got {list(lo)} and {list(hi)}")
         if any(a >= b for a, b in zip(self.workspace_min, self.workspace_max)):
             raise ValueError(
                 f"workspace_min must be below workspace_max on every axis; got {list(self.workspace_min)} and "
@@ -246,14 +229,8 @@ class FrankaEnvConfig:
             raise ValueError("oracle_tracking=True needs displacement=True (it tracks the displaced objects)")
         if self.backend == "real" and self.displacement:
             raise ValueError("displacement needs backend 'sim': on the real robot, move the objects by hand")
-        if self.occlusion_chunk is not None and self.occlusion_chunk < 0:
-            raise ValueError(f"occlusion_chunk must be >= 0; got {self.occlusion_chunk}")
-        if self.occlusion_mode not in OCCLUSION_MODES:
-            raise ValueError(f"occlusion_mode must be one of {OCCLUSION_MODES}; got {self.occlusion_mode!r}")
         if self.tracking_rgb and not self.tracking_camera:
             raise ValueError("tracking_rgb needs tracking_camera=True")
-        if self.occlusion_chunk is not None and not self.render_point_cloud:
-            raise ValueError("occlusion_chunk needs render_point_cloud=True (it corrupts the point cloud)")
 
     # ------------------------------------------------------------- resolved
     @property
@@ -280,11 +257,6 @@ class FrankaEnvConfig:
         deltas = self.displacement_deltas or [None] * len(rows)
         return tuple(r.replace(chunk=c, delta=d) for r, c, d in zip(rows, chunks, deltas))
 
-    def occlusion_schedule(self) -> Occlusion | None:
-        if self.occlusion_chunk is None:
-            return None
-        return Occlusion(self.occlusion_chunk, self.occlusion_chunks, self.occlusion_mode)
-
 
 def make_sim_backend(config: FrankaEnvConfig):
     """The robosuite backend with the config's policy and tracking cameras."""
@@ -301,20 +273,22 @@ def make_sim_backend(config: FrankaEnvConfig):
 
 
 @register("env", "franka", config=FrankaEnvConfig)
-class FrankaEnv(EpisodeSeeds, EnvBase):
+class FrankaEnv(PointCloudEnv):
     """Franka Panda tasks (stack, pour, press) with point clouds and the paper's OOD disturbances.
 
     ``backend``: an already built :class:`FrankaBackend` to use instead of building one from the
     config (its cameras must match the config's image sizes); the caller then closes it.
     """
 
+    env_name = "franka env"
+    action_dim = ACTION_DIM
+    agent_pos_dim = AGENT_POS_DIM
     #: holding still: translation and rotation deltas at 0, the binary gripper command unchanged (open at reset)
     action_hold = HoldSpec(absolute=(6,), reset={6: -1.0})
 
     def __init__(self, config: FrankaEnvConfig | None = None, *, seed: int | None = None, device="cpu", backend=None):
         cfg = FrankaEnvConfig() if config is None else config
-        super().__init__(device=device, batch_size=torch.Size([]))
-        self.config = cfg
+        super().__init__(cfg, seed=seed, device=device)
         self._task: FrankaTask = cfg.task_spec
         self._owns_backend = backend is None  # a backend passed in is closed by the caller
         if backend is None:
@@ -331,108 +305,128 @@ class FrankaEnv(EpisodeSeeds, EnvBase):
             max_translation=cfg.max_translation, max_rotation=cfg.max_rotation, max_lead=cfg.max_lead,
         )  # fmt: skip
         self._plan = cfg.displacement_schedule()
-        self._occlusion = cfg.occlusion_schedule()
         lo, hi = cfg.crop_box
         self._cloud_fn = FrameToCloud(cfg.num_points, cfg.presample, lo, hi)
         k = len(self._task.object_names)
-        self._init_seeds(seed)
-        self._steps = 0
-        self._rng = np.random.default_rng(0)
-        self._cloud = np.zeros((cfg.num_points, 3), dtype=np.float32)
         self._tracking: dict[str, np.ndarray] | None = None
         self._displacement = np.zeros((k, 3))
         self._tracked = np.zeros((len(self._plan), 3))
         self._ee_offset = np.zeros(3)
-        self._occluded = False
-        self._success = False
         self._task_state: dict = {}
-        self._make_specs(k)
+        self._build_specs()
 
-    # ------------------------------------------------------------------ specs
-    def _make_specs(self, k: int) -> None:
-        cfg, dev = self.config, self.device
-        vec = lambda *shape: Unbounded(shape=shape, dtype=torch.float32, device=dev)  # noqa: E731
-        flag = lambda: Categorical(2, shape=(1,), dtype=torch.bool, device=dev)  # noqa: E731
-        integer = lambda *shape: Unbounded(shape=shape, dtype=torch.int64, device=dev)  # noqa: E731
-        privileged = Composite(
+    # ------------------------------------------------------------- the adapter
+    def _privileged_spec(self) -> dict:
+        k = len(self._task.object_names)
+        vec = self._vec_spec
+        return dict(
             object_pos=vec(k, 3), object_quat=vec(k, 4), displacement=vec(k, 3), ee_offset=vec(3),
-            ee_target=vec(3), ee_target_quat=vec(4), occluded=flag(), seed=integer(1), step=integer(1), device=dev,
+            ee_target=vec(3), ee_target_quat=vec(4), seed=self._int_spec(1), step=self._int_spec(1),
         )  # fmt: skip
-        obs = {"agent_pos": vec(AGENT_POS_DIM), "success": flag(), "privileged": privileged}
-        if cfg.render_point_cloud:
-            obs["point_cloud"] = vec(cfg.num_points, 3)
-        if cfg.tracking_camera:
-            h, w = cfg.tracking_image_height, cfg.tracking_image_width
-            tracking = dict(
-                depth=vec(h, w), intrinsics=vec(3, 3), cam_to_world=vec(4, 4),
-                segmentation=Unbounded(shape=(h, w), dtype=torch.int32, device=dev),
-            )  # fmt: skip
-            if cfg.tracking_rgb:
-                tracking["rgb"] = Bounded(0, 255, shape=(h, w, 3), dtype=torch.uint8, device=dev)
-            obs["tracking"] = Composite(tracking, device=dev)
-        self.observation_spec = Composite(obs, device=dev)
-        low = torch.as_tensor(self.control.action_low, dtype=torch.float32)
-        self.action_spec = Bounded(low, -low, shape=(ACTION_DIM,), dtype=torch.float32, device=dev)
-        self.reward_spec = vec(1)
-        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), device=dev)
 
-    # -------------------------------------------------------------- TorchRL API
-    def _reset(self, tensordict: TensorDictBase | None = None, seed: int | None = None, **kwargs) -> TensorDictBase:
-        seed = self._episode_seed(seed)
+    def _extra_spec(self) -> dict:
+        cfg, dev = self.config, self.device
+        if not cfg.tracking_camera:
+            return {}
+        h, w = cfg.tracking_image_height, cfg.tracking_image_width
+        vec = self._vec_spec
+        tracking = dict(
+            depth=vec(h, w), intrinsics=vec(3, 3), cam_to_world=vec(4, 4),
+            segmentation=Unbounded(shape=(h, w), dtype=torch.int32, device=dev),
+        )  # fmt: skip
+        if cfg.tracking_rgb:
+            tracking["rgb"] = Bounded(0, 255, shape=(h, w, 3), dtype=torch.uint8, device=dev)
+        return {"tracking": Composite(tracking, device=dev)}
+
+    def _action_bounds(self):
+        low = torch.as_tensor(self.control.action_low, dtype=torch.float32)
+        return low, -low
+
+    def _episode_rng(self, seed: int) -> np.random.Generator:
+        return np.random.default_rng([abs(seed), 1])
+
+    def _sim_reset(self, seed: int) -> None:
         layout = self._task.sample_layout(np.random.default_rng([abs(seed), 0]))
-        self._rng = np.random.default_rng([abs(seed), 1])
         self.backend.reset(object_positions=layout, home=True)
         self.control.reset()
-        self._steps = 0
         self._displacement[:] = 0.0
         self._tracked[:] = 0.0
         self._ee_offset[:] = 0.0
-        self._occluded = False
         self._task_state = self._task.new_state()
-        self._success = False
-        self._render(first=True)
-        return self._output(reward=None, terminated=False, truncated=False)
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def _before_action(self, t: int) -> None:
         cfg = self.config
-        t = self._steps
         for i, row in enumerate(self._plan):
             if t == row.step(cfg.chunk_len):
                 self._apply_displacement(i, row)
             if cfg.oracle_tracking and t == row.snap_back_step(cfg.chunk_len):
                 self.shift_end_effector(-self._tracked[i])
                 self._tracked[i] = 0.0
-        action = tensordict.get("action").detach().to("cpu", torch.float64).numpy()
+
+    def _sim_step(self, action: np.ndarray) -> tuple[float, bool]:
         self.control.step(action)
-        self._steps = t + 1
+        success = False  # on hardware, success is judged by a person
         if self._is_sim:
             self._task.update(self.backend, self._task_state)
-            self._success = bool(self._task.success(self.backend, self._task_state))
-        self._render()
-        return self._output(
-            reward=float(self._success),
-            terminated=self._success and cfg.terminate_on_success,
-            truncated=self._steps >= cfg.episode_steps,
-        )
+            success = bool(self._task.success(self.backend, self._task_state))
+        return float(success), success
 
-    def close(self, *, raise_if_closed: bool = True) -> None:
-        """Release the backend (simulator and renderers, or the robot connection)."""
+    def _agent_pos(self) -> np.ndarray:
+        pos, quat = self.backend.ee_pose()
+        return agent_pos(pos, quat, self.backend.gripper_width())
+
+    def _privileged(self) -> dict:
+        k = len(self._task.object_names)
+        positions = self.backend.object_positions()
+        quats = getattr(self.backend, "object_quaternions", lambda: None)()
+        return {
+            "object_pos": self._f32(np.zeros((k, 3)) if positions is None else positions),
+            "object_quat": self._f32(np.tile([1.0, 0, 0, 0], (k, 1)) if quats is None else quats),
+            "displacement": self._f32(self._displacement),
+            "ee_offset": self._f32(self._ee_offset),
+            "ee_target": self._f32(self.control.target_pos),
+            "ee_target_quat": self._f32(mat_to_quat(self.control.target_rot)),
+            "seed": self._int(self._seed),
+            "step": self._int(self._steps),
+        }
+
+    def _render_cloud(self) -> np.ndarray:
+        return self._cloud_fn(self.backend.render("policy"), self._rng)
+
+    def _render_extras(self) -> None:
+        if not self.config.tracking_camera:
+            return
+        frame = self.backend.render("tracking")
+        seg = frame.segmentation
+        if seg is None:
+            seg = np.full(frame.depth.shape, -1, dtype=np.int32)
+        self._tracking = {
+            "depth": np.asarray(frame.depth, dtype=np.float32),
+            "intrinsics": np.asarray(frame.intrinsics, dtype=np.float32),
+            "cam_to_world": np.asarray(frame.cam_to_world, dtype=np.float32),
+            "segmentation": np.asarray(seg, dtype=np.int32),
+        }
+        if self.config.tracking_rgb:
+            rgb = frame.rgb if frame.rgb is not None else np.zeros((*frame.depth.shape, 3), dtype=np.uint8)
+            self._tracking["rgb"] = np.asarray(rgb, dtype=np.uint8)
+
+    def _extra_output(self) -> dict:
+        if not self.config.tracking_camera:
+            return {}
+        return {"tracking": {key: torch.as_tensor(v.copy(), device=self.device) for key, v in self._tracking.items()}}
+
+    def _close_sim(self) -> None:
+        """Release the backend (simulator and renderers, or the robot connection) unless the caller owns it."""
         backend = self.__dict__.get("backend")
         if backend is not None and self.__dict__.get("_owns_backend", True):
             backend.close()
         self.__dict__["backend"] = None
-        super().close(raise_if_closed=raise_if_closed)
 
     # ------------------------------------------------------- oracle interface
     @property
     def task(self) -> FrankaTask:
         """The task (objects, ID lines, displacement schedule, oracle)."""
         return self._task
-
-    @property
-    def steps_done(self) -> int:
-        """Actions executed since the last reset."""
-        return self._steps
 
     @property
     def task_state(self) -> dict:
@@ -485,73 +479,9 @@ class FrankaEnv(EpisodeSeeds, EnvBase):
         if self.config.oracle_tracking:
             self._tracked[i] = self.shift_end_effector(delta, safe_lift=row.safe_lift)
 
-    def _render_due(self, t: int) -> bool:
-        return render_due(t, self.config.obs_every, self.config.obs_history)
-
-    def _render(self, first: bool = False) -> None:
-        cfg = self.config
-        due = first or self._render_due(self._steps)
-        if cfg.render_point_cloud:
-            occ = self._occlusion
-            self._occluded = occ is not None and occ.covers(self._steps, cfg.chunk_len)
-            if self._occluded:
-                lo, hi = cfg.crop_box
-                self._cloud = occ.corrupt(cfg.num_points, lo, hi, self._rng)
-            elif due:
-                self._cloud = self._cloud_fn(self.backend.render("policy"), self._rng)
-        if cfg.tracking_camera and due:
-            frame = self.backend.render("tracking")
-            seg = frame.segmentation
-            if seg is None:
-                seg = np.full(frame.depth.shape, -1, dtype=np.int32)
-            self._tracking = {
-                "depth": np.asarray(frame.depth, dtype=np.float32),
-                "intrinsics": np.asarray(frame.intrinsics, dtype=np.float32),
-                "cam_to_world": np.asarray(frame.cam_to_world, dtype=np.float32),
-                "segmentation": np.asarray(seg, dtype=np.int32),
-            }
-            if cfg.tracking_rgb:
-                rgb = frame.rgb if frame.rgb is not None else np.zeros((*frame.depth.shape, 3), dtype=np.uint8)
-                self._tracking["rgb"] = np.asarray(rgb, dtype=np.uint8)
-
     def render_rgb(self, width: int = 256, height: int = 256, camera: str | None = None) -> np.ndarray:
         """A colour frame for videos (simulation): ``[height, width, 3]`` uint8 from ``camera`` (default policy)."""
         fn = getattr(self.backend, "render_rgb", None)
         if fn is None:
             raise ValueError(f"{type(self.backend).__name__} cannot render colour frames")
         return fn(camera or "policy", width, height)
-
-    def _output(self, *, reward: float | None, terminated: bool, truncated: bool) -> TensorDictBase:
-        dev = self.device
-        f32 = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float32), device=dev)  # noqa: E731
-        flag = lambda b: torch.tensor([bool(b)], dtype=torch.bool, device=dev)  # noqa: E731
-        k = len(self._task.object_names)
-        pos, quat = self.backend.ee_pose()
-        positions = self.backend.object_positions()
-        quats = getattr(self.backend, "object_quaternions", lambda: None)()
-        privileged = {
-            "object_pos": f32(np.zeros((k, 3)) if positions is None else positions),
-            "object_quat": f32(np.tile([1.0, 0, 0, 0], (k, 1)) if quats is None else quats),
-            "displacement": f32(self._displacement),
-            "ee_offset": f32(self._ee_offset),
-            "ee_target": f32(self.control.target_pos),
-            "ee_target_quat": f32(mat_to_quat(self.control.target_rot)),
-            "occluded": flag(self._occluded),
-            "seed": torch.tensor([self._seed], dtype=torch.int64, device=dev),
-            "step": torch.tensor([self._steps], dtype=torch.int64, device=dev),
-        }
-        out = {
-            "agent_pos": f32(agent_pos(pos, quat, self.backend.gripper_width())),
-            "success": flag(self._success),
-            "privileged": privileged,
-            "done": flag(terminated or truncated),
-            "terminated": flag(terminated),
-            "truncated": flag(truncated),
-        }
-        if self.config.render_point_cloud:
-            out["point_cloud"] = torch.as_tensor(self._cloud.copy(), device=dev)
-        if self.config.tracking_camera:
-            out["tracking"] = {key: torch.as_tensor(v.copy(), device=dev) for key, v in self._tracking.items()}
-        if reward is not None:
-            out["reward"] = torch.tensor([reward], dtype=torch.float32, device=dev)
-        return TensorDict(out, batch_size=torch.Size([]), device=dev)
