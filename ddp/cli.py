@@ -1,4 +1,4 @@
-"""The ``ddp`` command line: ``ddp list | recipe | summary | train``."""
+"""The ``ddp`` command line: ``ddp list | recipe | summary | train | bench | demos | eval | detect | run``."""
 
 from __future__ import annotations
 
@@ -117,6 +117,62 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _env_overrides(pairs: list[str]) -> dict:
+    """``KEY=VALUE`` pairs (values parsed as YAML) -> a dict; one line for a malformed pair."""
+    import yaml
+
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep or not key:
+            raise DDPError(f"--env: expected KEY=VALUE, e.g. --env displacement_chunk=4; got {pair!r}")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
+def cmd_detect(args) -> int:
+    from pathlib import Path
+
+    from ddp import results_json
+    from ddp.detection import SCORE_VARIANTS, detect, format_detect, plot_detect, summary_json
+    from ddp.errors import suggest
+    from ddp.experiment import build, experiment_from_checkpoint
+
+    _at_least_one(episodes=args.episodes, calibration_episodes=args.calibration_episodes)
+    if not 0.0 < args.alpha < 1.0:
+        raise DDPError(f"--alpha: must be in (0, 1); got {args.alpha}")
+    variants = SCORE_VARIANTS
+    if args.scores:
+        names = [n.strip() for n in args.scores.split(",") if n.strip()]
+        for n in names:
+            if n not in SCORE_VARIANTS:
+                raise DDPError(f"--scores: unknown score {n!r}{suggest(n, SCORE_VARIANTS)} "
+                               f"(known: {', '.join(SCORE_VARIANTS)})")
+        variants = {n: SCORE_VARIANTS[n] for n in names}
+    if args.recipe is None:
+        exp = experiment_from_checkpoint(args.checkpoint, trust_plugins=args.trust_plugins, overrides=args.overrides)
+    else:
+        exp = build(args.recipe, args.overrides)
+        exp.load_checkpoint(args.checkpoint)
+    disturbances = tuple(d.strip() for d in args.disturbances.split(",") if d.strip())
+    from ddp.protocols.base import check_protocols
+
+    check_protocols(disturbances, source="--disturbances")
+    rep = detect(exp, episodes=args.episodes, calibration_episodes=args.calibration_episodes, alpha=args.alpha,
+                 seed=args.seed, disturbances=disturbances, env=_env_overrides(args.env), variants=variants,
+                 progress=not args.quiet, num_envs=args.num_envs or 1, parallel=args.parallel)
+    out = Path(args.output_dir or Path(args.checkpoint).parent / "detect")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "detect.json").write_text(results_json.dumps(summary_json(rep)))
+    (out / "detect_traces.json").write_text(results_json.dumps(rep["traces"], indent=None))
+    (out / "detect.md").write_text(format_detect(rep))
+    for score in rep["traces"]:
+        plot_detect(rep, score, out / f"detect_{score}.png")
+    print(format_detect(rep))
+    print(f"wrote {out}/detect.json, detect.md, detect_traces.json and one detect_<score>.png per score")
+    return 0
+
+
 def cmd_run(args) -> int:
     from pathlib import Path
 
@@ -221,7 +277,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_demos)
 
-    p = sub.add_parser("eval", help="evaluate a checkpoint", description="Run evaluation protocols (id, ood_base, ood_tracking, ood_ddp, imagination_10/50/100, occlusion) and write results.json, table.md and plots. Without RECIPE the checkpoint's stored recipe is used; its plugin modules are imported only with --trust-plugins.")
+    p = sub.add_parser("eval", help="evaluate a checkpoint", description="Run evaluation protocols (id, id_ddp, ood_base, ood_tracking, ood_ddp, ood_ddp_oracle, imagination_10/50/100, occlusion, occlusion_oracle; see ddp list protocol) and write results.json, table.md and plots. Without RECIPE the checkpoint's stored recipe is used; its plugin modules are imported only with --trust-plugins.")
     _add_recipe_args(p, optional=True)
     p.add_argument("--trust-plugins", action="store_true",
                    help="without RECIPE: import the plugin modules the checkpoint's recipe lists (runs their code)")
@@ -235,6 +291,24 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--raw-weights", action="store_true", help="evaluate the raw weights instead of the EMA")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("detect", help="compare OOD detection statistics on a checkpoint", description="Roll out the base policy with the world model forecasting every cycle on ID calibration episodes, ID test episodes and disturbed episodes (displacement, occlusion), calibrate every detection statistic to the same false-alarm rate alpha (split conformal) and report, per statistic and disturbance: AUROC at the first chunk the disturbance is visible and after, detections within one chunk, median delay, misses, alarms before the disturbance and ID false alarms. Writes detect.json, detect.md, per-chunk traces and one plot per statistic.")
+    _add_recipe_args(p, optional=True)
+    p.add_argument("--trust-plugins", action="store_true",
+                   help="without RECIPE: import the plugin modules the checkpoint's recipe lists (runs their code)")
+    p.add_argument("--checkpoint", required=True, help="checkpoint written by ddp train (last.pt)")
+    p.add_argument("--episodes", type=int, default=10, help="test episodes per condition (ID and each disturbance)")
+    p.add_argument("--calibration-episodes", type=int, help="ID calibration episodes (default: eval.calibration_episodes)")
+    p.add_argument("--alpha", type=float, default=0.05, help="target false-alarm rate per ID episode (default 0.05)")
+    p.add_argument("--disturbances", default="ood_base", help="comma-separated protocols that disturb the episodes, run with the base policy (default ood_base; e.g. ood_base,occlusion)")
+    p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE", help="env override for the disturbed episodes, e.g. --env displacement_chunk=4 --env 'displacement_delta=[0.1,0,0]' (repeatable)")
+    p.add_argument("--scores", help="comma-separated statistics to compare (default: all of ddp.detection.SCORE_VARIANTS)")
+    p.add_argument("--seed", type=int, help="first test seed (default: eval.seed; calibration uses seed + 100000)")
+    p.add_argument("--num-envs", type=int, help="environments stepped together")
+    p.add_argument("--parallel", action="store_true", help="one worker process per env")
+    p.add_argument("--output-dir", help="default: <checkpoint dir>/detect")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_detect)
 
     p = sub.add_parser("run", help="train then evaluate one or more recipes", description="Train each recipe (resuming if a checkpoint exists) and evaluate it; print one table for all.")
     p.add_argument("recipes", nargs="+", help="recipes to run in turn (e.g. DDP and its DP3 baseline)")

@@ -32,6 +32,8 @@ class Encoder(Protocol):
     """Built as ``factory(config, agent_pos_dim=D, point_dim=C)``; E_psi."""
 
     out_dim: int  # latent size per observation step
+    # optional: ``point_dims`` (int), how many leading latent dims are point-cloud features (detectors
+    # can score them alone); an encoder without it counts as 0 (unknown)
 
     def encode(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
         """``[*, P, C], [*, D] -> [*, out_dim]``."""
@@ -78,7 +80,8 @@ class Calibratable(Protocol):
 
     needs_calibration: bool
 
-    def calibrate(self, values, chunks=None) -> float: ...
+    def calibrate(self, episodes, *, point_dims: int = 0) -> float:
+        """Fit on ID episodes (dicts with ``latent_real`` / ``latent_pred`` arrays [chunks, M, D]); tau."""
 
     def calibration(self) -> dict: ...
 

@@ -9,17 +9,22 @@ import numpy as np
 from ddp import results_json
 
 
-def protocol_result(episodes: list[dict], *, seconds: float, thresholds: dict, videos: list[str] | None = None) -> dict:
-    """One protocol's entry in results.json: success rate and counts, time, thresholds, every episode."""
+def protocol_result(episodes: list[dict], *, seconds: float, thresholds: dict, videos: list[str] | None = None,
+                    detection: dict | None = None, detector: dict | None = None) -> dict:
+    """One protocol's entry in results.json: success rate and counts, time, the detector and its threshold,
+    the detection metrics (``ddp.detection``), every episode."""
     out = {
         "success_rate": float(np.mean([r["success"] for r in episodes])),
         "successes": int(sum(r["success"] for r in episodes)),
         "episodes": len(episodes),
         "seconds": seconds,
+        "detector": detector,
         "tau": thresholds.get("tau"),
-        "tau_per_chunk": thresholds.get("tau_per_chunk"),
+        "alpha": thresholds.get("alpha"),
         "per_episode": episodes,
     }
+    if detection is not None:
+        out["detection"] = detection
     if videos is not None:
         out["videos"] = videos
     return out
@@ -31,7 +36,7 @@ def write_report(report: dict, out_dir: Path) -> list[Path]:
 
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "results.json").write_text(results_json.dumps(report))
-    (out_dir / "table.md").write_text(markdown_table({report["recipe"]: report}))
+    (out_dir / "table.md").write_text(markdown_table({report["recipe"]: report}) + detection_table(report))
     return plot_report(report, out_dir)
 
 
@@ -45,4 +50,30 @@ def markdown_table(reports: dict[str, dict]) -> str:
             r = rep["protocols"].get(p)
             cells.append("-" if r is None else f"{100 * r['success_rate']:.0f} ({r['successes']}/{r['episodes']})")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def detection_table(report: dict) -> str:
+    """Markdown: per protocol whose detector decides, the detector and its detection metrics."""
+    from ddp.detection import fmt_num
+
+    rows = [(name, r) for name, r in report["protocols"].items() if "detection" in r]
+    if not rows:
+        return ""
+    lines = ["", "Detection (first visible = first chunk whose observation shows the disturbance):", "",
+             "| protocol | detector | detected (<= 1 chunk) | median delay | missed | episodes with a false alarm | "
+             "false alarms per ID chunk | AUROC at visible / +1 / +2 / +3 |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, r in rows:
+        m, det = r["detection"], r.get("detector") or {}
+        what = det.get("name", "?")
+        if det.get("name") == "discrepancy":
+            what += f" (alpha {r.get('alpha')})" if det.get("tau") is None else f" (tau {det.get('tau')})"
+        au = "/".join(fmt_num(a, "{:.2f}") for a in (m.get("auroc_after_visible") or [])) or "-"
+        n = m["disturbed_episodes"] + m["clean_episodes"]
+        lines.append(
+            f"| {name} | {what} | {m['detected']}/{m['disturbed_episodes']} ({m['detected_within_1']}) | "
+            f"{fmt_num(m['median_delay'], '{:.1f}')} | {m['missed']} | {m['episodes_with_false_alarm']}/{n} | "
+            f"{fmt_num(m['false_alarms_per_id_chunk'])} | {au} |"
+        )
     return "\n".join(lines) + "\n"

@@ -88,13 +88,14 @@ def _chunks_per_episode(exp, overrides: dict) -> int:
 
 def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: dict, num_envs: int = 1,
                      desc: str = "", progress: bool = True, parallel: bool = False,
-                     video: VideoSettings | None = None) -> list[dict]:
+                     video: VideoSettings | None = None, record_latents: bool = False) -> list[dict]:
     """Run ``episodes`` seeded episodes with a torchrl Collector; one dict of results per episode.
 
     ``num_envs > 1`` steps several envs as one batch: in this process (``SerialEnv``) or, with
     ``parallel=True``, each in its own worker process (``ParallelEnv``). Env ``i`` runs the
     seeds ``seed + i * ceil(episodes / num_envs) + 0, 1, ...``. ``video`` records each env's
-    first ``video.episodes`` episodes.
+    first ``video.episodes`` episodes. ``record_latents`` keeps each chunk's real and forecast latent
+    windows (``latent_real`` / ``latent_pred`` arrays [chunks, M, D]) for detector calibration.
     """
     from torchrl.collectors import Collector
     from torchrl.envs import ParallelEnv, SerialEnv
@@ -128,7 +129,7 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
                 if len(results) >= episodes:
                     break
                 ep = i * per_env + len([r for r in results if r["env"] == i])
-                results.append(_summarise(traj, env_index=i, seed=seed + ep))
+                results.append(_summarise(traj, env_index=i, seed=seed + ep, latents=record_latents))
                 bar.update(1)
                 bar.set_postfix(success=f"{np.mean([r['success'] for r in results]):.2f}")
             if len(results) >= episodes:
@@ -140,7 +141,21 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
     return sorted(results, key=lambda r: r["seed"])
 
 
-def _summarise(traj, env_index: int, seed: int) -> dict:
+def _disturbed(traj) -> list[bool] | None:
+    """Per chunk, whether the observation the controller saw was disturbed: an object displaced (privileged
+    ``displacement``) or the camera blind (``occluded``). None when the env reports neither."""
+    keys = traj.keys(True)
+    flags = None
+    if ("privileged", "displacement") in keys:
+        disp = traj.get(("privileged", "displacement"))
+        flags = disp.flatten(1).reshape(disp.shape[0], -1, disp.shape[-1]).norm(dim=-1).amax(-1) > 1e-6
+    if ("privileged", "occluded") in keys:
+        occ = traj.get(("privileged", "occluded")).reshape(-1).bool()
+        flags = occ if flags is None else flags | occ
+    return None if flags is None else flags.tolist()
+
+
+def _summarise(traj, env_index: int, seed: int, latents: bool = False) -> dict:
     success = traj.get(("next", "success")).reshape(-1)
     out = {
         "seed": seed,
@@ -149,30 +164,34 @@ def _summarise(traj, env_index: int, seed: int) -> dict:
         "chunks": int(traj.batch_size[0]),
         "first_success_chunk": int(success.nonzero()[0]) if bool(success.any()) else None,
     }
-    for key in ("mode", "imagined", "discrepancy"):
+    for key in ("mode", "imagined", "discrepancy", "score"):
         if ("ddp", key) in traj.keys(True):
             out[key] = traj.get(("ddp", key)).reshape(-1).float().tolist()
+    disturbed = _disturbed(traj)
+    if disturbed is not None:
+        out["disturbed"] = disturbed
+    if latents:
+        out["latent_real"] = traj.get(("ddp", "latent_real")).double().numpy()
+        out["latent_pred"] = traj.get(("ddp", "latent_pred")).double().numpy()
     return out
 
 
-def calibration_values(exp, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
-                       parallel: bool = False) -> tuple[list[float], list[int]]:
-    """D_R-I values observed in ID rollouts of the base policy, and the chunk index of each."""
-    # the base policy, with the world model's forecast made every cycle so that D_R-I is measured
-    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
-    # the id protocol's env (eval.env, eval.max_steps): calibration episodes are as long as evaluated ones
+def calibration_episodes(exp, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
+                         parallel: bool = False) -> list[dict]:
+    """ID rollouts of the base policy with the world model forecasting every cycle, each with its
+    chunks' real and forecast latent windows (what a discrepancy detector is calibrated on)."""
     from ddp.protocols.base import get_protocol
 
+    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
+    # the id protocol's env (eval.env, eval.max_steps): calibration episodes are as long as evaluated ones
     overrides = env_overrides(exp, get_protocol("id"), exp.recipe.eval.max_steps)
-    res = rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=overrides, num_envs=num_envs,
-                           desc="calibrate tau", progress=progress, parallel=parallel)
-    pairs = [(v, c) for r in res for c, v in enumerate(r.get("discrepancy", [])) if math.isfinite(v)]
-    return [v for v, _ in pairs], [c for _, c in pairs]
+    return rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=overrides, num_envs=num_envs,
+                            desc="calibrate detector", progress=progress, parallel=parallel, record_latents=True)
 
 
-def calibrate_tau(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
-                  parallel: bool = False) -> float:
-    """Set a discrepancy detector's tau (and per-chunk thresholds) from D_R-I in ID rollouts; return tau."""
-    values, chunks = calibration_values(exp, episodes=episodes, seed=seed, num_envs=num_envs, progress=progress,
-                                        parallel=parallel)
-    return detector.calibrate(values, chunks=chunks)
+def calibrate_detector(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
+                       parallel: bool = False) -> float:
+    """Fit a calibratable detector (statistic and threshold) on ID rollouts; return its tau."""
+    runs = calibration_episodes(exp, episodes=episodes, seed=seed, num_envs=num_envs, progress=progress,
+                                parallel=parallel)
+    return detector.calibrate(runs, point_dims=exp.model.point_dims)

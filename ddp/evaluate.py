@@ -1,8 +1,10 @@
 """``evaluate()``: run a recipe's evaluation protocols and report them, top to bottom.
 
 1. settle the settings (the recipe's ``eval`` section, overridden by arguments, checked);
-2. for each protocol: its env overrides and controller, a discrepancy threshold calibrated
-   once on ID rollouts when the detector needs one, the episodes (:mod:`ddp.eval_runner`);
+2. for each protocol: its env overrides and controller, the detector's statistic and threshold
+   calibrated once on ID rollouts when it needs them (or read from the calibration saved beside
+   the checkpoint, ``ddp.calibration_file``), the episodes (:mod:`ddp.eval_runner`), and the
+   detection metrics of every protocol whose detector decides (:mod:`ddp.detection`);
 3. write results.json, table.md and plots (:mod:`ddp.eval_report`).
 """
 
@@ -12,11 +14,13 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from ddp import results_json
 from ddp.contracts import Calibratable
+from ddp.detection import detection_metrics
 from ddp.errors import RecipeError
 from ddp.eval_report import markdown_table, protocol_result, write_report  # noqa: F401 (re-exported)
 from ddp.eval_runner import (  # noqa: F401 (re-exported: the runner's public names)
-    ChunkedEnvFactory, calibrate_tau, calibration_values, env_factory, env_overrides, make_chunked_env,
+    ChunkedEnvFactory, calibrate_detector, calibration_episodes, env_factory, env_overrides, make_chunked_env,
     rollout_episodes,
 )
 from ddp.protocols.base import check_protocols, get_protocol
@@ -26,7 +30,7 @@ _env_overrides = env_overrides  # the name earlier code used
 
 __all__ = [
     "evaluate", "settle", "EvalSettings", "markdown_table", "protocol_result", "write_report", "ChunkedEnvFactory",
-    "calibrate_tau", "calibration_values", "env_factory", "env_overrides", "make_chunked_env", "rollout_episodes",
+    "calibrate_detector", "calibration_episodes", "env_factory", "env_overrides", "make_chunked_env", "rollout_episodes",
 ]
 
 
@@ -82,11 +86,14 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     exp.model.to(resolve_device(cfg.device, source=exp.source, key="eval.device"))  # envs stay on the CPU
     runs = dict(num_envs=s.num_envs, progress=progress, parallel=s.parallel)
     report = {"recipe": exp.recipe.name, "episodes": s.episodes, "seed": s.seed, "protocols": {}}
-    calibration = None  # thresholds calibrated once, on ID rollouts, for every protocol that needs them
+    calibrations: dict[str, dict] = {}  # per detector section: calibrated once, on ID rollouts
     for name in s.protocols:
         protocol = get_protocol(name)
         overrides = env_overrides(exp, protocol, cfg.max_steps)
-        ctrl = exp.make_controller(detector=protocol.detector, imagine=protocol.imagine, tracker=protocol.tracker)
+        # where the env's own oracle tracks, the controller does not track too
+        tracker = protocol.tracker and not overrides.get("oracle_tracking", False)
+        ctrl = exp.make_controller(detector=protocol.detector, imagine=protocol.imagine, tracker=tracker)
+        section = _detector_section(exp, protocol)
         if not isinstance(ctrl.detector, Calibratable) and callable(getattr(ctrl.detector, "calibrate", None)):
             import warnings
 
@@ -94,10 +101,10 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
                           "contract (needs_calibration, calibration, load_calibration): it is not calibrated",
                           stacklevel=2)
         if isinstance(ctrl.detector, Calibratable) and ctrl.detector.needs_calibration:
-            if calibration is None:
-                calibrate_tau(exp, ctrl.detector, episodes=cfg.calibration_episodes, seed=s.seed + 100_000, **runs)
-                calibration = ctrl.detector.calibration()
-            ctrl.detector.load_calibration(calibration)
+            key = results_json.dumps(section)
+            if key not in calibrations:
+                calibrations[key] = _calibration(exp, ctrl.detector, section, seed=s.seed + 100_000, runs=runs)
+            ctrl.detector.load_calibration(calibrations[key])
         vid = None
         if s.video:
             vid = VideoSettings(str(s.out_dir / "videos" / name), episodes=cfg.video_episodes, size=cfg.video_size,
@@ -109,7 +116,47 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
         if vid is not None:
             videos = [str(p) for p in sorted(Path(vid.directory).glob("seed*")) if p.suffix in (".mp4", ".gif")]
         thresholds = ctrl.detector.calibration() if isinstance(ctrl.detector, Calibratable) else {}
+        detection = None
+        if section.get("name") not in NOT_DECIDING:
+            detection = detection_metrics(episodes_run, reference=thresholds.get("reference"))
         report["protocols"][name] = protocol_result(episodes_run, seconds=time.perf_counter() - t0,
-                                                    thresholds=thresholds, videos=videos)
+                                                    thresholds=thresholds, videos=videos, detection=detection,
+                                                    detector=section)
     report["plots"] = [str(p) for p in write_report(report, s.out_dir)]
     return report
+
+
+#: detectors that do not decide OOD from observations (no detection metrics for their protocols)
+NOT_DECIDING = ("never", "substitution")
+
+
+def _detector_section(exp, protocol) -> dict:
+    """The detector section a protocol runs: its own, or the recipe's (resolved, defaults filled)."""
+    from ddp.schema import resolve_part
+
+    if protocol.detector is not None:
+        return resolve_part("detector", protocol.detector, key="controller.detector", source="<protocol>").as_dict()
+    return exp.parts["controller.detector"].as_dict()
+
+
+def _calibration(exp, detector, section: dict, *, seed: int, runs: dict) -> dict:
+    """The detector's calibration: read from beside the checkpoint when it was made for this model,
+    detector and ID env, else fitted on ``eval.calibration_episodes`` ID rollouts and saved there."""
+    from ddp.calibration_file import calibration_path, load_calibration, model_digest, save_calibration
+
+    cfg = exp.recipe.eval
+    id_env = env_overrides(exp, get_protocol("id"), cfg.max_steps)
+    key = dict(model_hash=model_digest(exp.model), detector=section, id_env=id_env,
+               episodes=cfg.calibration_episodes, seed=seed)
+    path = calibration_path(exp.checkpoint_path) if exp.checkpoint_path is not None else None
+    saved = load_calibration(path, **key) if path is not None else None
+    if saved is not None:
+        return saved
+    try:
+        calibrate_detector(exp, detector, episodes=cfg.calibration_episodes, seed=seed, **runs)
+    except ValueError as err:  # e.g. too few ID episodes for alpha
+        raise RecipeError(str(err), source=exp.source, key="controller.detector") from None
+    calibration = detector.calibration()
+    if path is not None:
+        save_calibration(path, calibration, checkpoint=str(exp.checkpoint_path), **key)
+    return calibration

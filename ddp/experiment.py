@@ -36,6 +36,7 @@ class Experiment:
         except RecipeError as err:
             raise RecipeError(err.reason, source=err.source or source, key=err.key) from None
         self._episodes = None
+        self.checkpoint_path: Path | None = None  # set by load_checkpoint
 
     def __repr__(self) -> str:
         return f"Experiment({self.recipe.name!r}, source={self.source!r})"
@@ -107,6 +108,7 @@ class Experiment:
         except (RuntimeError, TypeError) as err:
             first = str(err).strip().splitlines()[0]
             raise CheckpointError(f"{path}: weights do not fit this recipe's model: {first}") from None
+        self.checkpoint_path = Path(path)  # a detector calibration is saved beside it
         return self
 
     def make_controller(self, *, detector: dict | None = None, imagine: bool | None = None,

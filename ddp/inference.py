@@ -10,7 +10,15 @@ It writes ``action`` [B, N, A] (the chunk to execute), ``ee_shift`` [B, 3]
 (tracking / recovery shift the environment executes before the chunk) and
 diagnostics under ``"ddp"``: ``mode`` (0 ID, 1 OOD), ``imagined`` (the
 policy acted from imagined latents), ``discrepancy`` (D_R-I, NaN before the
-first prediction), ``subtask``.
+first prediction), ``subtask``. Before the detector runs it writes what
+detectors score: ``latent_real`` / ``latent_pred`` [B, M, D] (the real
+window and the world model's forecast of it, NaN before the first forecast,
+so nothing can flag an episode's first chunk from D_R-I) and ``point_dims``
+[B] (how many leading latent dims are point-cloud features).
+
+An OOD flag with no displaced object to track (a false alarm, an occlusion,
+a sensor fault) is re-checked on the next cycle: the controller imagines
+for as long as the statistic stays above tau, then returns to reality.
 
 Nothing non-finite leaves it: observations are validated at the boundary
 (``ddp.safety.check_observation``); an environment whose observation or latents
@@ -72,6 +80,9 @@ class DDPController(KeyedModule):
         "discrepancy": ("ddp", "discrepancy"),
         "subtask": ("ddp", "subtask"),
         "held": ("ddp", "held"),
+        "latent_real": ("ddp", "latent_real"),
+        "latent_pred": ("ddp", "latent_pred"),
+        "point_dims": ("ddp", "point_dims"),
     }
 
     def __init__(
@@ -216,6 +227,13 @@ class DDPController(KeyedModule):
             [self._discrepancy(real[b], self.states[b]) if finite[b] else float("inf") for b in range(B)]
         )
         td.set(self.key("discrepancy"), discrepancy)
+        # what detectors score: the real window and its forecast (NaN before the first forecast)
+        td.set(self.key("latent_real"), real.float().to(env_device))
+        nan = torch.full_like(real[0], float("nan"))
+        td.set(self.key("latent_pred"), torch.stack([
+            s.predicted[-M:].to(real) if s.predicted is not None else nan for s in self.states
+        ]).float().to(env_device))
+        td.set(self.key("point_dims"), torch.full((B,), self.model.point_dims, dtype=torch.int64))
 
         # Delta p_C per tracked object [B, K, 3]: the tracker's output sizes the object masks (K = 0 without one)
         offsets = self.tracker(td).get(self.tracker.key("offsets")) if self.tracker is not None else None
@@ -257,6 +275,8 @@ class DDPController(KeyedModule):
                     target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
                     if self.track and target is not None and bool(s.displaced[target]):
                         ee_shift[b] += offsets[b][target]  # a^track_j = Delta p_Cj
+                if s.displaced is None or not bool(s.displaced.any()):
+                    s.recheck_after = chunk_index[b]  # nothing to track or recover: re-check D_R-I next cycle
             elif s.ood and not self.detector.sticky:
                 s.ood = bool(ood_now[b])  # re-decided every cycle (substitution, simulator oracle)
             elif s.ood and s.recheck_after is not None and chunk_index[b] > s.recheck_after and finite[b]:

@@ -33,25 +33,27 @@ def plot_success(report: dict, path: Path) -> Path:
     return path
 
 
-def plot_discrepancy(episode: dict, tau: float | None, title: str, path: Path,
-                     tau_per_chunk: list[float] | None = None) -> Path:
-    """D_R-I per control cycle, the threshold tau (a step curve when calibrated per chunk), OOD periods shaded."""
+def plot_discrepancy(episode: dict, tau: float | None, title: str, path: Path) -> Path:
+    """The detector's statistic per control cycle (D_R-I when the detector records none) against tau,
+    OOD periods shaded, the first chunk at which the disturbance was visible dotted."""
     plt = _pyplot()
-    d = episode["discrepancy"]
+    key = "score" if any(not math.isnan(v) for v in episode.get("score", [])) else "discrepancy"
+    d = episode[key]
     mode = episode.get("mode", [0] * len(d))
     xs = list(range(len(d)))
     fig, ax = plt.subplots(figsize=(6, 2.6))
-    ax.plot(xs, [float("nan") if math.isnan(v) else v for v in d], marker="o", ms=3, lw=1.2, label="$D_{R-I}$")
-    if tau_per_chunk:
-        per = [tau_per_chunk[x] if x < len(tau_per_chunk) else tau for x in xs]
-        ax.step(xs, per, where="mid", color="crimson", ls="--", lw=1, label=r"$\tau_{diff}$ per chunk")
-    elif tau is not None:
-        ax.axhline(tau, color="crimson", ls="--", lw=1, label=r"$\tau_{diff}$")
+    label = "detector statistic" if key == "score" else "$D_{R-I}$"
+    ax.plot(xs, [float("nan") if math.isnan(v) else v for v in d], marker="o", ms=3, lw=1.2, label=label)
+    if tau is not None and key == "score":
+        ax.axhline(tau, color="crimson", ls="--", lw=1, label=r"$\tau$")
     for x, m in zip(xs, mode):
         if m:
             ax.axvspan(x - 0.5, x + 0.5, color="orange", alpha=0.25, lw=0)
+    visible = next((c for c, f in enumerate(episode.get("disturbed") or []) if f), None)
+    if visible is not None:
+        ax.axvline(visible, color="black", ls=":", lw=1, label="first visible")
     ax.set_xlabel("control cycle (action chunk)")
-    ax.set_ylabel("latent discrepancy")
+    ax.set_ylabel(label)
     ax.set_title(title + " (shaded: OOD mode)")
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
@@ -61,15 +63,18 @@ def plot_discrepancy(episode: dict, tau: float | None, title: str, path: Path,
 
 
 def plot_report(report: dict, out_dir: Path) -> list[Path]:
-    """Write success.png and one discrepancy_<protocol>.png per protocol that recorded D_R-I."""
+    """Write success.png and one discrepancy_<protocol>.png per protocol whose detector recorded a statistic."""
     try:
         _pyplot()
     except ImportError:
         return []
     paths = [plot_success(report, out_dir / "success.png")]
     for name, res in report["protocols"].items():
-        eps = [e for e in res["per_episode"] if any(not math.isnan(v) for v in e.get("discrepancy", []))]
-        if eps and name in ("ood_ddp", "occlusion", "ood_tracking"):
-            paths.append(plot_discrepancy(eps[0], res.get("tau"), f"{report['recipe']} / {name}, seed {eps[0]['seed']}",
-                                          out_dir / f"discrepancy_{name}.png", res.get("tau_per_chunk")))
+        eps = [e for e in res["per_episode"]
+               if any(not math.isnan(v) for v in e.get("score", []) or e.get("discrepancy", []))]
+        if eps and "detection" in res:
+            disturbed = [e for e in eps if any(e.get("disturbed") or [])]
+            ep = (disturbed or eps)[0]
+            paths.append(plot_discrepancy(ep, res.get("tau"), f"{report['recipe']} / {name}, seed {ep['seed']}",
+                                          out_dir / f"discrepancy_{name}.png"))
     return paths

@@ -156,7 +156,7 @@ class EvalConfig:
     seed: int = 1000  # first environment seed; episode i uses seed + i
     num_envs: int = 1
     max_steps: int | None = None  # env steps per episode (default: the env's own limit)
-    calibration_episodes: int = 5  # ID episodes used to calibrate a null discrepancy tau
+    calibration_episodes: int = 40  # ID episodes calibrating a detector (half fit its statistic, half set tau)
     occlusion_chunk: int = 3
     occlusion_chunks: int = 2
     parallel: bool = False  # num_envs > 1: one worker process per env (torchrl ParallelEnv) instead of SerialEnv

@@ -91,7 +91,7 @@ CASES = [
     ("missing-base", lambda t, tr: ["recipe", write(t / "r.yaml", "base: nope.yaml\nname: a\n")], "base recipe"),
     ("cyclic-base", lambda t, tr: ["recipe", write(t / "r.yaml", "base: r.yaml\nname: a\n")], "cyclic base"),
     ("unknown-protocol", lambda t, tr: ["recipe", write(t / "r.yaml", tiny(eval={"protocols": ["id", "odd_ddp"]}))],
-     "eval.protocols: unknown protocol 'odd_ddp'; did you mean 'ood_ddp'?"),
+     "eval.protocols: unknown protocol 'odd_ddp'; did you mean 'ood_ddp'"),
     ("env-points-differ", lambda t, tr: ["recipe", write(t / "r.yaml", tiny(env={"num_points": 32}))],
      "env.num_points: 32 differs from task.num_points (64)"),
     ("short-horizon", lambda t, tr: ["recipe", write(t / "r.yaml", tiny(policy={"horizon": 4}))], "horizon must be >="),

@@ -1,5 +1,6 @@
 """The DDP controller (Algorithm 2) on the synthetic env: modes, tracking, imagination, recovery."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,8 @@ from torchrl.envs.utils import check_env_specs
 
 from conftest import DELTA, displaced_exp
 from ddp import build
+from ddp.errors import RecipeError
+from ddp.calibration_file import calibration_path
 from ddp.envs.chunked import ChunkedEnv
 from ddp.envs.synthetic_reach import SyntheticReachEnv, SyntheticReachEnvConfig
 from ddp.evaluate import make_chunked_env
@@ -85,38 +88,10 @@ def test_discrepancy_detector_threshold_and_calibration(exp):
     ctrl = exp.make_controller(detector={"name": "discrepancy", "tau": 1e-12})
     r = rollout(exp, ctrl)
     assert r["ddp", "mode"][1] == 1  # any discrepancy exceeds a tiny tau
-    tau = ctrl.detector.calibrate([0.1, 0.2, 0.3, 10.0])
-    assert tau == pytest.approx(1.5 * torch.tensor([0.1, 0.2, 0.3, 10.0]).quantile(0.99).item(), rel=1e-6)
+    assert r["ddp", "mode"][0] == 0  # but nothing can flag the first chunk: there is no forecast yet
+    assert torch.allclose(r["ddp", "score"][1:].double(), r["ddp", "discrepancy"][1:].double(), rtol=1e-5)
     with pytest.raises(RuntimeError, match="no threshold"):
         rollout(exp, exp.make_controller(detector={"name": "discrepancy"}), chunks=3)
-
-
-def test_discrepancy_per_chunk_thresholds():
-    from tensordict import TensorDict
-
-    from ddp.detectors.discrepancy import DiscrepancyConfig, DiscrepancyDetector
-
-    det = DiscrepancyDetector(DiscrepancyConfig(tau=None, per_chunk=True, window=1, percentile=100, margin=2.0))
-    # ID forecast error: small at chunks 1-2, large around a contact at chunk 5
-    values = [0.01, 0.02, 0.01, 0.02, 0.01, 0.5, 0.01]
-    chunks = [1, 2, 1, 2, 3, 5, 6]
-    tau = det.calibrate(values, chunks=chunks)
-    assert tau == pytest.approx(1.0)  # the global tau: margin x max
-    # chunk c pools chunks c-1..c+1: chunk 0 has only chunk 1's values, chunk 4 has none but chunk 5's
-    assert det.tau_per_chunk == pytest.approx([0.02, 0.04, 0.04, 0.04, 1.0, 1.0, 1.0])
-    td = TensorDict({("ddp", "discrepancy"): torch.tensor([0.03, 0.03, 0.03, 0.6]),
-                     "chunk_index": torch.tensor([[1], [2], [5], [40]])}, batch_size=[4])
-    # each value against its own chunk's tau: 0.04 at chunks 1 and 2, 1.0 at 5, the global 1.0 past the table
-    assert det(td)["ddp", "ood"].tolist() == [False, False, False, False]
-    td["ddp", "discrepancy"] = torch.tensor([0.05, 0.05, 0.05, 1.5])
-    assert det(td)["ddp", "ood"].tolist() == [True, True, False, True]  # past the table: the global tau
-    other = DiscrepancyDetector(DiscrepancyConfig(tau=None, per_chunk=True))
-    other.load_calibration(det.calibration())
-    assert other(td)["ddp", "ood"].tolist() == [True, True, False, True]
-    with pytest.raises(ValueError, match="chunk index"):
-        det.calibrate(values)
-    with pytest.raises(ValueError, match="set tau to null"):
-        DiscrepancyConfig(tau=0.1, per_chunk=True)
 
 
 def test_per_chunk_calibration_reaches_every_protocol(exp, tmp_path):
@@ -126,12 +101,17 @@ def test_per_chunk_calibration_reaches_every_protocol(exp, tmp_path):
         "detector", {"name": "discrepancy", "tau": None, "per_chunk": True}, key="controller.detector", source="<test>"
     )
     exp.recipe.eval.calibration_episodes = 1
+    exp.parts["controller.detector"].config.alpha = 0.5  # 2 held-out episodes suffice for alpha 0.5
+    exp.recipe.eval.calibration_episodes = 4
+    exp.checkpoint_path = tmp_path / "last.pt"  # the calibration is saved beside it
     rep = exp.evaluate(["ood_ddp", "occlusion"], episodes=1, output_dir=tmp_path, progress=False)
     first, second = rep["protocols"]["ood_ddp"], rep["protocols"]["occlusion"]
-    assert first["tau_per_chunk"] and first["tau_per_chunk"] == second["tau_per_chunk"]
-    assert first["tau"] == second["tau"] and all(t > 0 for t in first["tau_per_chunk"])
-    assert len(first["tau_per_chunk"]) == first["per_episode"][0]["chunks"]  # one per chunk index seen
+    cal = json.loads(calibration_path(exp.checkpoint_path).read_text())["calibration"]
+    assert cal["chunk_scale"] and all(t > 0 for t in cal["chunk_scale"])
+    assert first["tau"] == second["tau"] == cal["tau"] and cal["fit_episodes"] == cal["threshold_episodes"] == 2
+    assert len(cal["chunk_scale"]) == first["per_episode"][0]["chunks"]  # one per chunk index seen
     assert (tmp_path / "discrepancy_ood_ddp.png").exists()
+    assert "detection" in first and "Detection" in (tmp_path / "table.md").read_text()
 
 
 def test_discrepancy_needs_a_world_model(tiny_recipe):
@@ -259,9 +239,13 @@ def test_tau_calibrated_from_id_rollouts_without_forecast_every_cycle(exp, tmp_p
     from ddp.schema import resolve_part
 
     exp.parts["controller.detector"] = resolve_part(
-        "detector", {"name": "discrepancy", "tau": None}, key="controller.detector", source="<test>"
+        "detector", {"name": "discrepancy", "tau": None, "alpha": 0.5}, key="controller.detector", source="<test>"
     )
     exp.recipe.eval.calibration_episodes = 1
+    exp.parts["controller.detector"].config.alpha = 0.05  # needs 19 held-out ID episodes: one line says so
+    with pytest.raises(RecipeError, match="alpha 0.05 needs at least 19 held-out ID calibration episodes"):
+        exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path, progress=False)
+    exp.parts["controller.detector"].config.alpha = 0.5
     rep = exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path, progress=False)
     tau = rep["protocols"]["ood_ddp"]["tau"]
     assert tau is not None and tau > 0

@@ -13,6 +13,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -271,9 +272,17 @@ def test_resume_accepts_an_env_that_now_follows_the_task(tmp_path):
 
 def test_calibration_ignores_nonfinite_discrepancies(tiny_recipe, monkeypatch):
     import ddp.eval_runner as runner
+    from ddp.detectors.discrepancy import DiscrepancyConfig, DiscrepancyDetector
 
     exp = build(tiny_recipe)
-    canned = [{"discrepancy": [float("nan"), 0.1, float("inf"), 0.3]}, {"discrepancy": [float("nan"), 0.2]}]
+
+    def episode(values):  # chunk scores -> latent windows whose D_R-I is exactly those values
+        pred = np.sqrt(np.asarray(values, dtype=np.float64))[:, None, None] * np.ones((1, 2, 4))
+        return {"latent_real": np.zeros_like(pred), "latent_pred": pred}
+
+    canned = [episode([float("nan"), 0.1, float("inf"), 0.3]), episode([float("nan"), 0.2])]
     monkeypatch.setattr(runner, "rollout_episodes", lambda *a, **k: canned)
-    values, chunks = runner.calibration_values(exp, episodes=2, seed=0, progress=False)
-    assert values == [0.1, 0.3, 0.2] and chunks == [1, 3, 1]
+    det = DiscrepancyDetector(DiscrepancyConfig(alpha=0.4))  # 2 episodes: the 2nd smallest maximum
+    tau = runner.calibrate_detector(exp, det, episodes=2, seed=0, progress=False)
+    assert tau == pytest.approx(0.3)  # the inf chunk is dropped, not the threshold
+    assert det.calibration()["reference"][0][2] != det.calibration()["reference"][0][2]  # NaN in the reference

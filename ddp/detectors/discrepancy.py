@@ -1,117 +1,135 @@
-"""The paper's OOD detector: real-imagination discrepancy D_R-I above a threshold tau.
+"""The paper's OOD detector: a real-imagination discrepancy statistic above a threshold tau.
 
-tau is the recipe's, or calibrated from ID rollouts (``tau: null``): a margin
-times a high percentile of the D_R-I values seen. With ``per_chunk: true`` the
-calibration keeps one threshold per chunk index instead (the percentile of the
-values at chunks ``c - window .. c + window``), since the world model's ID
-forecast error depends on the task's phase: small while the arm approaches,
-larger around contacts. A displacement early in an episode can then be seen
-before the late, noisier chunks would have set a single tau (chunks past the
-calibrated ones use the global tau). This extends the paper, whose tau is one
-number per task.
+By default the statistic is the paper's D_R-I (the mean squared latent error
+between the real and the imagined window) and tau is calibrated from ID
+rollouts to a stated false-alarm rate: ``alpha`` is the probability that an
+ID episode raises an alarm at all, and the threshold is the split-conformal
+quantile of ID episode maxima (``ddp.detectors.scores``), valid for any
+number of calibration episodes that allows it. ``dims`` / ``frames`` /
+``whiten`` / ``per_chunk`` / ``cusum`` choose another statistic of the same
+residual (see ``ddp.detectors.scores``; ``ddp detect`` compares them on a
+checkpoint). ``tau`` fixes the threshold instead (in the statistic's units).
+
+Reads the controller's ``("ddp", "latent_real")`` / ``("ddp", "latent_pred")``
+windows ([B, M, D]; the forecast is NaN before the first one exists, so no
+alarm is possible on an episode's first chunk) and ``chunk_index``; writes
+``("ddp", "ood")`` and the statistic as ``("ddp", "score")``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
+from ddp.detectors.scores import ScoreCalibration, ScoreSpec, fit_calibration, residual_score
 from ddp.keys import KeyedModule
 from ddp.registry import register
 
 
 @dataclass
 class DiscrepancyConfig:
-    tau: float | None = None  # tau_diff; null = calibrate from ID rollouts
-    percentile: float = 99.0  # calibration: tau = margin * percentile of ID D_R-I values
-    margin: float = 1.5
-    per_chunk: bool = False  # calibration: one threshold per chunk index (see the module docstring)
+    tau: float | None = None  # threshold on the statistic; null = calibrate it from ID rollouts for alpha
+    alpha: float = 0.05  # target probability that an ID episode raises a false alarm (calibration)
+    dims: str = "all"  # latent dims scored: all, point (point-cloud features), state
+    frames: str = "mean"  # frames of the window: mean, newest, max
+    whiten: bool = False  # residuals divided per dim by their ID std (calibrated)
+    per_chunk: bool = False  # the score divided by the ID score of the task phase (chunk +- window)
     window: int = 1  # per_chunk: neighbouring chunks pooled on each side
+    cusum: bool = False  # accumulate evidence over chunks (CUSUM on the normalised score)
+    drift: float = 1.0  # cusum: subtracted each chunk, in units of the ID median score
+    fit_fraction: float = 0.5  # calibration: share of ID episodes fitting the score; the rest set tau
 
     def __post_init__(self):
-        if self.tau is not None and self.tau <= 0:
+        if self.tau is not None and not self.tau > 0:
             raise ValueError(f"tau must be > 0 or null; got {self.tau}")
-        if not 0 < self.percentile <= 100:
-            raise ValueError(f"percentile must be in (0, 100]; got {self.percentile}")
-        if self.window < 0:
-            raise ValueError(f"window must be >= 0; got {self.window}")
-        if self.per_chunk and self.tau is not None:
-            raise ValueError("per_chunk thresholds are calibrated from ID rollouts: set tau to null")
+        if not 0.0 < self.alpha < 1.0:
+            raise ValueError(f"alpha must be in (0, 1); got {self.alpha}")
+        if not 0.0 < self.fit_fraction < 1.0:
+            raise ValueError(f"fit_fraction must be in (0, 1); got {self.fit_fraction}")
+        self.spec  # noqa: B018 - validates dims, frames, window, drift
+
+    @property
+    def spec(self) -> ScoreSpec:
+        return ScoreSpec(self.dims, self.frames, self.whiten, self.per_chunk, self.window, self.cusum, self.drift)
 
 
 @register("detector", "discrepancy", config=DiscrepancyConfig)
 class DiscrepancyDetector(KeyedModule):
-    """OOD iff D_R-I(t) = ||O_real^t - O_pred^t||^2 > tau (paper eq. for D_R-I)."""
+    """OOD iff the real-imagination statistic (D_R-I by default) exceeds tau (calibrated to alpha)."""
 
-    default_in_keys = {"discrepancy": ("ddp", "discrepancy"), "chunk_index": "chunk_index"}
-    default_out_keys = {"ood": ("ddp", "ood")}
+    default_in_keys = {
+        "real": ("ddp", "latent_real"), "pred": ("ddp", "latent_pred"), "point_dims": ("ddp", "point_dims"),
+        "chunk_index": "chunk_index",
+    }
+    default_out_keys = {"ood": ("ddp", "ood"), "score": ("ddp", "score")}
     sticky = True  # once OOD, stay until recovery and a re-check say otherwise
     needs_discrepancy = True
 
     def __init__(self, config: DiscrepancyConfig):
         super().__init__()
         self.config = config
-        self.tau = config.tau
-        self.tau_per_chunk: list[float] | None = None  # set by a per_chunk calibration
+        self.spec = config.spec
+        self.cal = ScoreCalibration(tau=config.tau)
+        self._acc: list[float] = []  # CUSUM accumulators, one per environment
+
+    @property
+    def tau(self) -> float | None:
+        return self.cal.tau
 
     @property
     def needs_calibration(self) -> bool:
-        """No threshold yet (``tau: null``): ``ddp eval`` calibrates it from ID rollouts."""
-        return self.tau is None
+        """No threshold yet, or a statistic whose ID reference is not fitted: ``ddp eval`` calibrates it."""
+        fitted = self.cal.median is not None or not self.spec.normalised
+        fitted = fitted and (self.cal.center is not None or not self.spec.whiten)
+        return self.cal.tau is None or not fitted
 
-    def calibrate(self, values, chunks=None) -> float:
-        """Set tau from D_R-I values observed in ID rollouts; return the global tau.
-
-        ``chunks``: the chunk index of each value; with ``per_chunk`` it also sets ``tau_per_chunk``.
-        """
+    def calibrate(self, episodes, *, point_dims: int = 0) -> float:
+        """Fit the statistic and tau on ID episodes (``latent_real`` / ``latent_pred`` per chunk); return tau."""
         cfg = self.config
-        values = np.asarray(values, dtype=np.float64)
-        if values.size == 0:
-            raise ValueError("cannot calibrate tau from zero D_R-I values")
-        self.tau = float(cfg.margin * np.percentile(values, cfg.percentile))
-        self.tau_per_chunk = None
-        if cfg.per_chunk:
-            if chunks is None or len(chunks) != values.size:
-                raise ValueError("per_chunk calibration needs the chunk index of every D_R-I value")
-            chunks = np.asarray(chunks, dtype=np.int64)
-            taus = []
-            for c in range(int(chunks.max()) + 1):
-                near = values[np.abs(chunks - c) <= cfg.window]
-                taus.append(float(cfg.margin * np.percentile(near, cfg.percentile)) if near.size else self.tau)
-            self.tau_per_chunk = taus
-        return self.tau
+        self.cal = fit_calibration(list(episodes), self.spec, alpha=cfg.alpha, point_dims=point_dims,
+                                   fit_fraction=cfg.fit_fraction, tau=cfg.tau)
+        return self.cal.tau
 
     def calibration(self) -> dict:
-        """The thresholds in force (``tau``, and ``tau_per_chunk`` or None), e.g. to hand to another detector."""
-        return {"tau": self.tau, "tau_per_chunk": self.tau_per_chunk}
+        """The fitted statistic and threshold (JSON-ready), e.g. to save beside the checkpoint."""
+        return self.cal.to_dict()
 
     def load_calibration(self, calibration: dict) -> None:
-        self.tau = calibration["tau"]
-        self.tau_per_chunk = calibration.get("tau_per_chunk")
+        self.cal = ScoreCalibration.from_dict(calibration)
 
-    def threshold(self, chunk_index: torch.Tensor | None) -> torch.Tensor | float:
-        """tau for each environment's chunk (the global tau past the calibrated chunks)."""
-        if self.tau_per_chunk is None or chunk_index is None:
-            return self.tau
-        table = torch.tensor([*self.tau_per_chunk, self.tau], dtype=torch.float32)
-        idx = chunk_index.reshape(-1).long().clamp(0, len(self.tau_per_chunk))
-        return table[idx]
+    def reset(self):
+        self._acc = []
 
     def forward(self, td):
-        if self.tau is None:
+        if self.needs_calibration:
             raise RuntimeError(
                 "detector 'discrepancy' has no threshold: set controller.detector.tau, "
                 "or calibrate it from ID rollouts (ddp eval does this when tau is null)"
             )
-        discrepancy = td.get(self.key("discrepancy"))
-        chunk_index = td.get(self.key("chunk_index"), None)
-        threshold = self.threshold(chunk_index)
-        if isinstance(threshold, torch.Tensor):
-            threshold = threshold.to(discrepancy.device).reshape(discrepancy.shape)
-        td.set(self.key("ood"), discrepancy > threshold)
+        real, pred = td.get(self.key("real")), td.get(self.key("pred"))
+        point_dims = td.get(self.key("point_dims"), None)
+        pd = int(point_dims.reshape(-1)[0]) if point_dims is not None else 0
+        center, scale = self.cal.tensors()
+        score = residual_score(real, pred, self.spec, point_dims=pd, center=center, scale=scale).reshape(-1)
+        chunks = td.get(self.key("chunk_index")).reshape(-1).tolist()
+        if len(self._acc) != score.numel():
+            self._acc = [0.0] * score.numel()
+        stat = []
+        for b, (v, c) in enumerate(zip(score.tolist(), chunks)):
+            if c == 0:
+                self._acc[b] = 0.0
+            if self.spec.normalised and v == v:
+                v = v / self.cal.scale_at(int(c))
+            if self.spec.cusum and v == v:
+                self._acc[b] = max(0.0, self._acc[b] + v - self.spec.drift)
+                v = self._acc[b]
+            stat.append(v)
+        stat = torch.tensor(stat, dtype=torch.float64)
+        ood = stat > self.cal.tau  # NaN (no forecast yet) is never above
+        for b in torch.nonzero(ood).reshape(-1).tolist():
+            self._acc[b] = 0.0  # a CUSUM restarts after its alarm
+        shape = td.get(self.key("chunk_index")).shape[:-1] if td.batch_dims else ()
+        td.set(self.key("score"), stat.float().reshape(shape))
+        td.set(self.key("ood"), ood.reshape(shape))
         return td
-
-    def reset(self):
-        pass

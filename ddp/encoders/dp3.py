@@ -93,6 +93,11 @@ class DP3Encoder(KeyedModule):
     def out_dim(self) -> int:
         return self.config.out_channels + self.config.state_channels[-1]
 
+    @property
+    def point_dims(self) -> int:
+        """The latent's first ``out_channels`` dims are the point-cloud features, the rest proprioception."""
+        return self.config.out_channels
+
     def encode_points(self, point_cloud: Tensor) -> Tensor:
         """PointNet: ``[*, P, C] -> [*, out_channels]`` (max-pool over the P points)."""
         if point_cloud.dim() < 2 or point_cloud.shape[-1] < self.point_channels:

@@ -72,6 +72,12 @@ class DreamDiffusionPolicy(KeyedModule):
         return self.world_model_net is not None
 
     # ------------------------------------------------------------------ encoding
+    @property
+    def point_dims(self) -> int:
+        """How many leading latent dims come from the point cloud (the encoder's optional ``point_dims``; 0:
+        unknown or none). Detectors can score that part of the latent alone."""
+        return int(getattr(self.encoder, "point_dims", 0))
+
     def encode(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor) -> torch.Tensor:
         """O = E_psi(X): raw observations [*, P, C] / [*, D] -> latents [*, latent_dim]."""
         pc = self.normalizer.normalize("point_cloud", point_cloud)

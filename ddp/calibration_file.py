@@ -1,0 +1,68 @@
+"""A detector's calibration saved beside its checkpoint, so it is fitted once and can ship to the robot.
+
+``ddp eval`` (and ``ddp detect --save``) writes ``<checkpoint stem>.calibration.json`` next to the
+checkpoint: the fitted statistic and threshold (the detector's ``calibration()``), the target
+false-alarm rate, how many ID episodes and which seeds produced it, and what it is valid for: a
+digest of the model's weights, the detector section and the ID env overrides. A later evaluation
+with the same three reuses it; anything else calibrates again and overwrites it. The file is plain
+JSON (written atomically); loading it runs no code.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import torch
+
+from ddp import results_json
+from ddp.atomic_file import atomic_write
+
+__all__ = ["calibration_path", "model_digest", "load_calibration", "save_calibration"]
+
+FORMAT = "ddp-detector-calibration"
+
+
+def calibration_path(checkpoint) -> Path:
+    checkpoint = Path(checkpoint)
+    return checkpoint.with_name(f"{checkpoint.stem}.calibration.json")
+
+
+def model_digest(model: torch.nn.Module) -> str:
+    """sha256 (16 hex digits) of the model's parameters and buffers, in state_dict order."""
+    h = hashlib.sha256()
+    for name, t in model.state_dict().items():
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def _key(model_hash: str, detector: dict, id_env: dict, episodes: int, seed: int) -> dict:
+    return {"model": model_hash, "detector": detector, "id_env": id_env, "episodes": episodes, "seed": seed}
+
+
+def load_calibration(path, *, model_hash: str, detector: dict, id_env: dict, episodes: int, seed: int) -> dict | None:
+    """The saved calibration if ``path`` holds one made for exactly this model, detector and ID env; else None."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        return None
+    want = json.loads(results_json.dumps(_key(model_hash, detector, id_env, episodes, seed)))
+    if data.get("valid_for") != want:
+        return None
+    return data.get("calibration")
+
+
+def save_calibration(path, calibration: dict, *, model_hash: str, detector: dict, id_env: dict, episodes: int,
+                     seed: int, checkpoint: str | None = None) -> Path:
+    """Write the calibration atomically (temp file, fsync, rename)."""
+    payload = {"format": FORMAT, "checkpoint": checkpoint,
+               "valid_for": _key(model_hash, detector, id_env, episodes, seed), "calibration": calibration}
+    text = results_json.dumps(payload)
+    return atomic_write(path, lambda f: f.write(text), binary=False)

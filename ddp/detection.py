@@ -1,0 +1,329 @@
+"""How well OOD detection works: delays, misses, false alarms and AUROC, in evaluations and in ``ddp detect``.
+
+Every evaluated episode records, per chunk, the controller's ``mode`` (0 ID,
+1 OOD), the detector's statistic (``score``; D_R-I by default) and whether
+the observation the controller saw was ``disturbed`` (an object displaced, or
+the camera blind; read from the env's privileged keys, never shown to the
+controller). From these :func:`detection_metrics` counts, per protocol:
+
+* ``first_visible``: the first disturbed chunk of an episode (the first chunk
+  at which a detector could see the disturbance);
+* detections: the first ID->OOD switch at or after it, its ``delay`` in
+  chunks, and ``missed`` episodes (no switch until the end);
+* false alarms: ID->OOD switches before the first visible chunk of a
+  disturbed episode, or anywhere in an undisturbed one (per episode and per
+  undisturbed chunk);
+* AUROC of the statistic at the first visible chunk and the chunks after it,
+  against the ID statistic at the same chunk index (the detector's held-out
+  calibration episodes).
+
+:func:`detect` is the offline comparison behind ``ddp detect``: one set of ID
+calibration rollouts, ID test rollouts and disturbed rollouts of the base
+policy with the world model forecasting every cycle, on which every score
+variant is calibrated to the same false-alarm rate and then scored. Until its
+first alarm a sticky detector leaves the base policy's behaviour unchanged, so
+the first alarm found here is the one the closed-loop controller raises.
+"""
+
+from __future__ import annotations
+
+import math
+import numpy as np
+
+__all__ = ["auroc", "first_above", "detection_metrics", "detect", "SCORE_VARIANTS", "format_detect"]
+
+
+def auroc(negatives, positives) -> float:
+    """P(positive > negative) + P(tie) / 2 over all pairs (NaNs dropped); NaN if either side is empty."""
+    x = np.asarray(negatives, dtype=np.float64)
+    y = np.asarray(positives, dtype=np.float64)
+    x, y = x[~np.isnan(x)], y[~np.isnan(y)]
+    if x.size == 0 or y.size == 0:
+        return float("nan")
+    greater = (y[:, None] > x[None, :]).mean()
+    ties = (y[:, None] == x[None, :]).mean()
+    return float(greater + 0.5 * ties)
+
+
+def first_above(values, tau: float, start: int = 0) -> int | None:
+    """Index of the first value at or after ``start`` above ``tau`` (NaNs never are), or None."""
+    for i in range(start, len(values)):
+        v = values[i]
+        if not math.isnan(v) and v > tau:
+            return i
+    return None
+
+
+def _first_visible(ep: dict) -> int | None:
+    flags = ep.get("disturbed") or []
+    return next((c for c, f in enumerate(flags) if f), None)
+
+
+def _alarms(mode: list[float]) -> list[int]:
+    """Chunks at which the mode switched from ID to OOD."""
+    out, prev = [], 0.0
+    for c, m in enumerate(mode):
+        if m >= 0.5 and prev < 0.5:
+            out.append(c)
+        prev = m
+    return out
+
+
+def _auroc_after_visible(episodes: list[dict], reference: list[list[float]] | None, key: str,
+                         horizon: int) -> list[float] | None:
+    if not reference:
+        return None
+    out = []
+    for k in range(horizon):
+        pos, neg = [], []
+        for ep in episodes:
+            v = _first_visible(ep)
+            trace = ep.get(key)
+            if v is None or trace is None or v + k >= len(trace):
+                continue
+            pos.append(trace[v + k])
+            neg += [r[v + k] for r in reference if v + k < len(r)]
+        out.append(auroc(neg, pos))
+    return out
+
+
+def detection_metrics(episodes: list[dict], reference: list[list[float]] | None = None, *, key: str = "score",
+                      horizon: int = 4) -> dict:
+    """Detection summary of one protocol's episodes (see the module docstring); per-episode entries too."""
+    per_ep, delays = [], []
+    disturbed = [ep for ep in episodes if _first_visible(ep) is not None]
+    clean = [ep for ep in episodes if _first_visible(ep) is None]
+    for ep in episodes:
+        visible = _first_visible(ep)
+        alarms = _alarms(ep.get("mode") or [])
+        if visible is None:
+            per_ep.append({"seed": ep["seed"], "first_visible": None, "detected": None, "delay": None,
+                           "false_alarms": len(alarms)})
+            continue
+        early = [a for a in alarms if a < visible]
+        hit = next((a for a in alarms if a >= visible), None)
+        # an alarm raised before the disturbance and still on when it becomes visible counts as no detection
+        per_ep.append({"seed": ep["seed"], "first_visible": visible, "detected": hit,
+                       "delay": None if hit is None else hit - visible, "false_alarms": len(early)})
+        if hit is not None:
+            delays.append(hit - visible)
+    id_chunks = sum(len(ep.get("mode") or []) for ep in clean) + sum(
+        e["first_visible"] for e in per_ep if e["first_visible"] is not None)
+    fa_total = sum(e["false_alarms"] for e in per_ep)
+    out = {
+        "disturbed_episodes": len(disturbed),
+        "clean_episodes": len(clean),
+        "detected": len(delays),
+        "missed": len(disturbed) - len(delays),
+        "detected_within_1": sum(d <= 1 for d in delays),
+        "median_delay": float(np.median(delays)) if delays else None,
+        "mean_delay": float(np.mean(delays)) if delays else None,
+        "episodes_with_false_alarm": sum(e["false_alarms"] > 0 for e in per_ep),
+        "false_alarms_per_id_chunk": fa_total / id_chunks if id_chunks else None,
+        "auroc_after_visible": _auroc_after_visible(disturbed, reference, key, horizon),
+        "per_episode": per_ep,
+    }
+    return out
+
+
+def format_detection(m: dict) -> str:
+    """One line: detections, delay, false alarms."""
+    parts = []
+    if m["disturbed_episodes"]:
+        parts.append(f"detected {m['detected']}/{m['disturbed_episodes']} (within 1 chunk {m['detected_within_1']}), "
+                     f"median delay {fmt_num(m['median_delay'], '{:.1f}')} chunks")
+    n = m["disturbed_episodes"] + m["clean_episodes"]
+    parts.append(f"false alarms in {m['episodes_with_false_alarm']}/{n} episodes")
+    if m.get("auroc_after_visible"):
+        parts.append("AUROC at visibility+k " + "/".join(fmt_num(a, "{:.2f}") for a in m["auroc_after_visible"]))
+    return "; ".join(parts)
+
+
+def fmt_num(v, fmt="{:.3g}") -> str:
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else fmt.format(v)
+
+
+# ----------------------------------------------------------------------------- ddp detect
+#: the statistics ``ddp detect`` compares (name -> detector options)
+SCORE_VARIANTS: dict[str, dict] = {
+    "paper": {},
+    "newest_frame": {"frames": "newest"},
+    "max_frame": {"frames": "max"},
+    "point_dims": {"dims": "point"},
+    "point_newest": {"dims": "point", "frames": "newest"},
+    "whitened": {"whiten": True},
+    "per_chunk": {"per_chunk": True},
+    "whitened_per_chunk": {"whiten": True, "per_chunk": True},
+    "per_chunk_cusum": {"per_chunk": True, "cusum": True},
+    "point_per_chunk_cusum": {"dims": "point", "per_chunk": True, "cusum": True},
+}
+
+
+def _rollouts(exp, protocol: str, *, episodes: int, seed: int, env: dict, progress: bool, num_envs: int,
+              parallel: bool) -> list[dict]:
+    from ddp.eval_runner import env_overrides, rollout_episodes
+    from ddp.protocols.base import get_protocol
+
+    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
+    over = env_overrides(exp, get_protocol(protocol), exp.recipe.eval.max_steps)
+    over.update(env)
+    return rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=over, desc=f"{protocol} rollouts",
+                            progress=progress, num_envs=num_envs, parallel=parallel, record_latents=True)
+
+
+def _statistics(episodes: list[dict], spec, cal, point_dims: int) -> list[list[float]]:
+    import torch
+
+    from ddp.detectors.scores import episode_statistic, residual_score
+
+    center, scale = cal.tensors()
+    out = []
+    for ep in episodes:
+        s = residual_score(torch.as_tensor(ep["latent_real"]), torch.as_tensor(ep["latent_pred"]), spec,
+                           point_dims=point_dims, center=center, scale=scale).numpy()
+        out.append([float(v) for v in episode_statistic(s, spec, cal)])
+    return out
+
+
+def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, alpha: float = 0.05,
+           seed: int | None = None, disturbances: tuple[str, ...] = ("ood_base",), env: dict | None = None,
+           variants: dict[str, dict] | None = None, progress: bool = True, num_envs: int = 1,
+           parallel: bool = False) -> dict:
+    """Compare detection statistics on ``exp``'s checkpoint (see the module docstring).
+
+    ``disturbances``: protocols whose env disturbs the episodes (``ood_base``: the displacement,
+    ``occlusion``: the blind camera), run with the base policy; ``env``: extra env overrides for
+    them (e.g. ``displacement_delta``, ``displacement_chunk`` off the paper's table).
+    """
+    from ddp.detectors.discrepancy import DiscrepancyConfig
+    from ddp.detectors.scores import fit_calibration
+
+    if not exp.model.has_world_model:
+        raise ValueError(f"{exp.recipe.name}: detection needs a world model (world_model.enabled is false)")
+    cfg = exp.recipe.eval
+    seed = cfg.seed if seed is None else seed
+    n_cal = calibration_episodes or cfg.calibration_episodes
+    variants = SCORE_VARIANTS if variants is None else variants
+    runs = dict(progress=progress, num_envs=num_envs, parallel=parallel)
+    cal_eps = _rollouts(exp, "id", episodes=n_cal, seed=seed + 100_000, env={}, **runs)
+    test = {"id": _rollouts(exp, "id", episodes=episodes, seed=seed, env={}, **runs)}
+    for name in disturbances:
+        test[name] = _rollouts(exp, name, episodes=episodes, seed=seed, env=dict(env or {}), **runs)
+    pd = exp.model.point_dims
+    rows, traces = [], {}
+    for label, options in variants.items():
+        spec = DiscrepancyConfig(alpha=alpha, **options).spec
+        try:
+            cal = fit_calibration(cal_eps, spec, alpha=alpha, point_dims=pd)
+        except ValueError as err:  # e.g. point dims on an encoder without a point part
+            rows.append({"score": label, "options": options, "error": str(err)})
+            continue
+        row = {"score": label, "options": options, "description": spec.label(), "tau": cal.tau,
+               "fit_episodes": cal.fit_episodes, "threshold_episodes": cal.threshold_episodes}
+        stats = {name: _statistics(eps, spec, cal, pd) for name, eps in test.items()}
+        traces[label] = {"tau": cal.tau, "reference": cal.reference, **stats}
+        id_alarms = [first_above(s, cal.tau) for s in stats["id"]]
+        row["id_false_alarm_episodes"] = sum(a is not None for a in id_alarms)
+        row["id_episodes"] = len(id_alarms)
+        for name in disturbances:
+            eps = [{**ep, "score": s} for ep, s in zip(test[name], stats[name])]
+            delays, early, missed = [], 0, 0
+            for ep in eps:
+                visible = _first_visible(ep)
+                first = first_above(ep["score"], cal.tau)
+                if visible is None:
+                    continue
+                if first is not None and first < visible:
+                    early += 1  # a sticky detector is already OOD: the disturbance is not what it saw
+                    continue
+                if first is None:
+                    missed += 1
+                else:
+                    delays.append(first - visible)
+            au = _auroc_after_visible(eps, stats["id"], "score", 3)
+            row[name] = {
+                "episodes": sum(_first_visible(ep) is not None for ep in eps),
+                "detected": len(delays), "detected_within_1": sum(d <= 1 for d in delays),
+                "median_delay": float(np.median(delays)) if delays else None, "missed": missed,
+                "alarm_before_visible": early, "auroc_after_visible": au,
+            }
+        rows.append(row)
+    return {
+        "recipe": exp.recipe.name, "alpha": alpha, "episodes": episodes, "calibration_episodes": n_cal,
+        "seed": seed, "disturbances": list(disturbances), "env": dict(env or {}), "rows": rows,
+        "traces": traces,
+        "success": {name: [bool(ep["success"]) for ep in eps] for name, eps in test.items()},
+        "first_visible": {name: [_first_visible(ep) for ep in eps] for name, eps in test.items() if name != "id"},
+    }
+
+
+def format_detect(rep: dict) -> str:
+    """The comparison as a markdown table (one row per score and disturbance)."""
+    lines = [
+        f"{rep['recipe']}: alpha {rep['alpha']:g} per ID episode, {rep['calibration_episodes']} ID calibration "
+        f"episodes (split: fit / threshold), {rep['episodes']} test episodes per condition, seed {rep['seed']}"
+        + (f", env overrides {rep['env']}" if rep["env"] else ""),
+        "",
+        "| score | disturbance | AUROC at visible / +1 / +2 | detected (<= 1 chunk) | median delay | missed | "
+        "alarm before visible | ID false alarms | tau |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rep["rows"]:
+        if "error" in row:
+            lines.append(f"| {row['score']} | - | {row['error']} | | | | | | |")
+            continue
+        for name in rep["disturbances"]:
+            r = row[name]
+            au = "/".join(fmt_num(a, "{:.2f}") for a in (r["auroc_after_visible"] or []))
+            lines.append(
+                f"| {row['score']} | {name} | {au} | {r['detected']}/{r['episodes']} ({r['detected_within_1']}) | "
+                f"{fmt_num(r['median_delay'], '{:.1f}')} | {r['missed']} | {r['alarm_before_visible']} | "
+                f"{row['id_false_alarm_episodes']}/{row['id_episodes']} | {fmt_num(row['tau'])} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def plot_detect(rep: dict, score: str, path) -> None:
+    """The statistic of one score: the ID test band (min-max), disturbed episodes as lines, tau dashed."""
+    from matplotlib.ticker import MaxNLocator
+
+    from ddp.plots import _pyplot
+
+    plt = _pyplot()
+    tr = rep["traces"][score]
+    fig, axes = plt.subplots(1, len(rep["disturbances"]), figsize=(6.5 * len(rep["disturbances"]), 3.5),
+                             squeeze=False)
+    for ax, name in zip(axes[0], rep["disturbances"]):
+        ids = tr["id"]
+        chunks = max(len(t) for t in ids)
+        cols = [np.asarray([t[c] for t in ids if c < len(t)], dtype=np.float64) for c in range(chunks)]
+        cols = [c[np.isfinite(c)] for c in cols]
+        lo = [c.min() if c.size else np.nan for c in cols]
+        hi = [c.max() if c.size else np.nan for c in cols]
+        ax.fill_between(range(chunks), lo, hi, color="tab:green", alpha=0.25, label="ID test (min-max)")
+        for i, (t, v) in enumerate(zip(tr[name], rep["first_visible"][name])):
+            ax.plot(range(len(t)), t, color="tab:red", lw=0.8, alpha=0.7, label=name if i == 0 else None)
+            if v is not None:
+                ax.axvline(v, color="tab:red", lw=0.5, ls=":", alpha=0.5)
+        ax.axhline(tr["tau"], color="black", ls="--", lw=1, label=f"tau (alpha {rep['alpha']:g})")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_xlabel("chunk (dotted: first visible)")
+        ax.set_ylabel(f"statistic: {score}")
+        positive = [v for t in [*ids, *tr[name]] for v in t if v == v and v > 0]
+        if positive and all(v > 0 for t in [*ids, *tr[name]] for v in t if v == v):
+            ax.set_yscale("log")
+        elif positive:  # a CUSUM statistic is 0 until evidence accumulates
+            ax.set_yscale("symlog", linthresh=min(positive))
+            ax.set_ylim(bottom=0)
+        ax.set_title(f"{rep['recipe']}: {score} under {name}")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def summary_json(rep: dict) -> dict:
+    """``rep`` without the per-chunk traces (what is worth committing)."""
+    return {k: v for k, v in rep.items() if k != "traces"}
+
+

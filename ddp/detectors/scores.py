@@ -1,0 +1,240 @@
+"""Detection statistics on the real-imagination residual, and their calibration to a false-alarm rate.
+
+The paper's score is D_R-I = ||O_real - O_pred||^2, the mean squared latent
+error over the M newest frames and all latent dims. :class:`ScoreSpec` names
+the variants the discrepancy detector can use instead, all computed from the
+same two latent windows (``real``, ``pred``: ``[..., M, D]``):
+
+* ``dims``: ``all`` latent dims, the ``point`` part only (the encoder's
+  point-cloud features, the first ``point_dims``) or the ``state`` part;
+* ``frames``: the ``mean`` over the M frames, the ``newest`` frame, or the
+  ``max`` over frames;
+* ``whiten``: residuals centred and divided per latent dim by their ID
+  mean / std (from calibration rollouts) before squaring;
+* ``per_chunk``: the score divided by the ID score typical of the task's
+  phase (the median at chunks ``c - window .. c + window``), so a contact
+  phase with large ID errors does not set the threshold for an approach
+  with small ones;
+* ``cusum``: evidence accumulated over chunks, ``S_t = max(0, S_{t-1} + s_t
+  - drift)`` on the normalised score (the ID median is 1), reset after an
+  alarm; a persistent moderate excess then fires as surely as one large one.
+
+:class:`ScoreCalibration` fits the reference statistics on one part of the ID
+calibration episodes and sets the threshold on the other part by the
+split-conformal rule: with ``n`` held-out episode maxima, the threshold is the
+``ceil((n + 1)(1 - alpha))``-th smallest, so that a new ID episode (drawn
+like them) exceeds it with probability at most ``alpha``, for any score.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+__all__ = ["ScoreSpec", "ScoreCalibration", "residual_score", "conformal_threshold", "episode_statistic"]
+
+DIMS = ("all", "point", "state")
+FRAMES = ("mean", "newest", "max")
+
+
+@dataclass(frozen=True)
+class ScoreSpec:
+    """Which statistic of the residual a detector thresholds (see the module docstring)."""
+
+    dims: str = "all"
+    frames: str = "mean"
+    whiten: bool = False
+    per_chunk: bool = False
+    window: int = 1
+    cusum: bool = False
+    drift: float = 1.0
+
+    def __post_init__(self):
+        if self.dims not in DIMS:
+            raise ValueError(f"dims must be one of {DIMS}; got {self.dims!r}")
+        if self.frames not in FRAMES:
+            raise ValueError(f"frames must be one of {FRAMES}; got {self.frames!r}")
+        if self.window < 0:
+            raise ValueError(f"window must be >= 0; got {self.window}")
+        if not self.drift >= 0:
+            raise ValueError(f"drift must be >= 0; got {self.drift}")
+
+    @property
+    def normalised(self) -> bool:
+        """The statistic is in units of the ID median (needed to accumulate it)."""
+        return self.per_chunk or self.cusum
+
+    @property
+    def needs_reference(self) -> bool:
+        """Reference statistics must be fitted on ID rollouts before the score means anything."""
+        return self.whiten or self.normalised
+
+    def label(self) -> str:
+        parts = [f"{self.dims} dims", f"{self.frames} frame" if self.frames != "mean" else "mean frames"]
+        if self.whiten:
+            parts.append("whitened")
+        if self.per_chunk:
+            parts.append(f"per-chunk (window {self.window})")
+        if self.cusum:
+            parts.append(f"CUSUM (drift {self.drift:g})")
+        return ", ".join(parts)
+
+
+def _dim_slice(dims: str, point_dims: int, total: int) -> slice:
+    if dims == "all":
+        return slice(0, total)
+    if point_dims <= 0 or point_dims >= total:
+        raise ValueError(f"dims {dims!r} needs an encoder whose latent has point-cloud and state parts "
+                         f"(point_dims {point_dims} of {total})")
+    return slice(0, point_dims) if dims == "point" else slice(point_dims, total)
+
+
+def residual_score(real: torch.Tensor, pred: torch.Tensor, spec: ScoreSpec, *, point_dims: int = 0,
+                   center: torch.Tensor | None = None, scale: torch.Tensor | None = None) -> torch.Tensor:
+    """The instantaneous score of ``real`` against ``pred`` (``[..., M, D]`` each) -> ``[...]``; NaN where
+    ``pred`` is NaN (no forecast yet). ``center`` / ``scale`` ([D]) whiten when ``spec.whiten``."""
+    r = real.double() - pred.double()
+    if spec.whiten:
+        if center is None or scale is None:
+            raise ValueError("a whitened score needs the ID residual mean and std (calibrate the detector)")
+        r = (r - center.to(r)) / scale.to(r)
+    r = r[..., _dim_slice(spec.dims, point_dims, r.shape[-1])]
+    per_frame = (r**2).mean(-1)
+    if spec.frames == "mean":
+        return per_frame.mean(-1)
+    if spec.frames == "newest":
+        return per_frame[..., -1]
+    return per_frame.amax(-1)
+
+
+def conformal_threshold(maxima, alpha: float) -> float:
+    """The split-conformal threshold: the ``ceil((n + 1)(1 - alpha))``-th smallest of ``n`` ID episode maxima."""
+    x = np.sort(np.asarray(maxima, dtype=np.float64))
+    n = x.size
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must be in (0, 1); got {alpha}")
+    k = math.ceil((n + 1) * (1.0 - alpha))
+    if k > n:
+        need = math.ceil((1.0 - alpha) / alpha)
+        raise ValueError(f"alpha {alpha:g} needs at least {need} held-out ID calibration episodes for its threshold; "
+                         f"got {n} (raise eval.calibration_episodes or alpha)")
+    return float(x[k - 1])
+
+
+def episode_statistic(scores: np.ndarray, spec: ScoreSpec, reference) -> np.ndarray:
+    """The thresholded statistic over one episode's chunk scores (NaN: no forecast), as the detector
+    computes it online: normalised per chunk phase / by the ID median, accumulated by CUSUM."""
+    s = np.asarray(scores, dtype=np.float64)
+    if spec.normalised:
+        s = s / np.array([reference.scale_at(c) for c in range(s.size)])
+    if not spec.cusum:
+        return s
+    out, acc = np.full(s.size, np.nan), 0.0
+    for c, v in enumerate(s):
+        if np.isnan(v):
+            continue
+        acc = max(0.0, acc + v - spec.drift)
+        out[c] = acc
+    return out
+
+
+@dataclass
+class ScoreCalibration:
+    """Reference statistics of a score on ID episodes, and its conformal threshold.
+
+    ``center`` / ``scale``: per latent dim residual mean / std (whitening); ``chunk_scale``: the ID
+    median score per chunk phase (``per_chunk``), ``median``: over all chunks; ``tau``: the threshold
+    on the statistic; ``reference``: the held-out ID statistic per chunk (AUROC in reports).
+    """
+
+    alpha: float | None = None
+    tau: float | None = None
+    center: list[float] | None = None
+    scale: list[float] | None = None
+    median: float | None = None
+    chunk_scale: list[float] | None = None
+    fit_episodes: int = 0
+    threshold_episodes: int = 0
+    reference: list[list[float]] | None = None
+
+    def scale_at(self, chunk: int) -> float:
+        if self.chunk_scale and chunk < len(self.chunk_scale):
+            return self.chunk_scale[chunk]
+        return self.median
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ScoreCalibration":
+        known = {k: v for k, v in data.items() if k in cls.__dataclass_fields__}
+        if known.get("reference") is not None:  # strict JSON stored NaN (no forecast) as null
+            known["reference"] = [[math.nan if v is None else float(v) for v in row] for row in known["reference"]]
+        return cls(**known)
+
+    def tensors(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        if self.center is None:
+            return None, None
+        return torch.tensor(self.center, dtype=torch.float64), torch.tensor(self.scale, dtype=torch.float64)
+
+
+def _scores(episodes, spec: ScoreSpec, point_dims: int, cal: ScoreCalibration) -> list[np.ndarray]:
+    center, scale = cal.tensors()
+    out = []
+    for ep in episodes:
+        real = torch.as_tensor(np.asarray(ep["latent_real"], dtype=np.float64))
+        pred = torch.as_tensor(np.asarray(ep["latent_pred"], dtype=np.float64))
+        s = residual_score(real, pred, spec, point_dims=point_dims, center=center, scale=scale).numpy()
+        out.append(np.where(np.isfinite(s), s, np.nan))  # a non-finite chunk (sensor fault) is no ID evidence
+    return out
+
+
+def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | None, point_dims: int = 0,
+                    fit_fraction: float = 0.5, tau: float | None = None) -> ScoreCalibration:
+    """Fit ``spec``'s reference statistics on the first ``fit_fraction`` of the ID ``episodes`` (each with
+    ``latent_real`` / ``latent_pred`` arrays ``[chunks, M, D]``, NaN forecasts where none) and, unless
+    ``tau`` is given, the conformal threshold for ``alpha`` on the rest."""
+    n = len(episodes)
+    if n < 2 and spec.needs_reference and tau is None:
+        raise ValueError(f"calibrating this score needs at least 2 ID episodes; got {n}")
+    n_fit = max(1, int(round(n * fit_fraction))) if spec.needs_reference and tau is None else 0
+    if tau is None and n - n_fit < 1:
+        raise ValueError(f"no ID episodes left for the threshold ({n} episodes, {n_fit} used to fit the score)")
+    fit = episodes[:n_fit] if n_fit else episodes
+    held = episodes[n_fit:] if tau is None else episodes
+    cal = ScoreCalibration(alpha=alpha, fit_episodes=n_fit, threshold_episodes=len(held) if tau is None else 0)
+    if spec.whiten:
+        res = np.concatenate([
+            (np.asarray(e["latent_real"], np.float64) - np.asarray(e["latent_pred"], np.float64)).reshape(-1, np.shape(
+                e["latent_real"])[-1]) for e in fit
+        ])
+        res = res[np.isfinite(res).all(1)]  # chunks without a forecast, or with a non-finite latent
+        if res.shape[0] < 2:
+            raise ValueError("whitening needs ID residuals from at least two forecast chunks")
+        cal.center = res.mean(0).tolist()
+        cal.scale = np.maximum(res.std(0), 1e-8).tolist()
+    if spec.normalised:
+        raw = _scores(fit, spec, point_dims, cal)
+        allv = np.concatenate([s[np.isfinite(s)] for s in raw])
+        if allv.size == 0:
+            raise ValueError("no finite ID scores to normalise by (no chunk had a forecast)")
+        cal.median = float(max(np.median(allv), 1e-12))
+        if spec.per_chunk:
+            chunks = max(s.size for s in raw)
+            table = []
+            for c in range(chunks):
+                near = [s[j] for s in raw for j in range(max(0, c - spec.window), min(s.size, c + spec.window + 1))]
+                near = np.asarray([v for v in near if np.isfinite(v)])
+                table.append(float(max(np.median(near), 1e-12)) if near.size else cal.median)
+            cal.chunk_scale = table
+    stats = [episode_statistic(s, spec, cal) for s in _scores(held, spec, point_dims, cal)]
+    cal.reference = [[float(v) for v in s] for s in stats]
+    if tau is None:
+        maxima = [np.nanmax(s) if np.isfinite(s).any() else 0.0 for s in stats]
+        cal.tau = conformal_threshold(maxima, alpha)
+    else:
+        cal.tau = float(tau)
+    return cal

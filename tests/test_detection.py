@@ -1,0 +1,218 @@
+"""Automatic OOD detection: statistics, conformal calibration, detection metrics, ``ddp detect``, the controller."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import displaced_exp
+from ddp import results_json
+from ddp.calibration_file import calibration_path, load_calibration, model_digest, save_calibration
+from ddp.detection import auroc, detection_metrics, first_above
+from ddp.detectors.discrepancy import DiscrepancyConfig, DiscrepancyDetector
+from ddp.detectors.scores import ScoreSpec, conformal_threshold, episode_statistic, fit_calibration, residual_score
+
+
+def episodes_from_scores(scores: np.ndarray, m: int = 2, d: int = 4) -> list[dict]:
+    """Latent windows whose paper D_R-I is exactly ``scores[e, c]`` (NaN: no forecast)."""
+    out = []
+    for row in np.atleast_2d(scores):
+        pred = np.sqrt(row)[:, None, None] * np.ones((1, m, d))
+        out.append({"latent_real": np.zeros_like(pred), "latent_pred": pred})
+    return out
+
+
+# ----------------------------------------------------------------------------------------- statistics
+def test_scores_follow_their_definitions():
+    real = torch.zeros(3, 2, 6)
+    pred = torch.arange(36, dtype=torch.float64).reshape(3, 2, 6) / 10
+    r2 = pred**2
+    assert torch.allclose(residual_score(real, pred, ScoreSpec()), r2.mean((-1, -2)))
+    assert torch.allclose(residual_score(real, pred, ScoreSpec(frames="newest")), r2[:, -1].mean(-1))
+    assert torch.allclose(residual_score(real, pred, ScoreSpec(frames="max")), r2.mean(-1).amax(-1))
+    assert torch.allclose(residual_score(real, pred, ScoreSpec(dims="point"), point_dims=4), r2[..., :4].mean((-1, -2)))
+    assert torch.allclose(residual_score(real, pred, ScoreSpec(dims="state"), point_dims=4), r2[..., 4:].mean((-1, -2)))
+    center, scale = torch.full((6,), 0.5, dtype=torch.float64), torch.full((6,), 2.0, dtype=torch.float64)
+    white = residual_score(real, pred, ScoreSpec(whiten=True), center=center, scale=scale)
+    assert torch.allclose(white, (((0 - pred) - 0.5) / 2.0).pow(2).mean((-1, -2)))
+    assert math.isnan(residual_score(real[:1], torch.full((1, 2, 6), float("nan")), ScoreSpec()).item())
+    with pytest.raises(ValueError, match="point-cloud and state parts"):
+        residual_score(real, pred, ScoreSpec(dims="point"), point_dims=0)
+
+
+def test_per_chunk_normalisation_and_cusum():
+    from ddp.detectors.scores import ScoreCalibration
+
+    cal = ScoreCalibration(median=2.0, chunk_scale=[1.0, 1.0, 4.0])
+    s = np.array([np.nan, 2.0, 4.0, 6.0])
+    assert episode_statistic(s, ScoreSpec(per_chunk=True), cal)[1:].tolist() == [2.0, 1.0, 3.0]  # chunk 3: median
+    cusum = episode_statistic(s, ScoreSpec(per_chunk=True, cusum=True, drift=1.0), cal)
+    assert math.isnan(cusum[0]) and cusum[1:].tolist() == [1.0, 1.0, 3.0]  # max(0, S + s - drift)
+
+
+def test_conformal_threshold_rule():
+    assert conformal_threshold([3.0, 1.0, 2.0], 0.5) == 2.0  # ceil(4 x 0.5) = 2nd smallest
+    assert conformal_threshold(list(range(1, 20)), 0.05) == 19.0  # n = 19: the largest
+    with pytest.raises(ValueError, match="needs at least 19 held-out"):
+        conformal_threshold(list(range(18)), 0.05)
+
+
+@pytest.mark.parametrize("options", [{}, {"per_chunk": True, "cusum": True}, {"whiten": True, "per_chunk": True}])
+def test_conformal_false_alarm_rate_is_alpha_on_fresh_id_episodes(options):
+    """Split conformal: over calibrations, P(fresh ID episode alarms) lies in [alpha - 1/(n+1), alpha]."""
+    rng = np.random.default_rng(0)
+    alpha, n_cal, chunks, fresh = 0.2, 18, 12, 400
+    phase = 1.0 + 3.0 * (np.arange(chunks) >= 6)  # a contact phase with larger ID errors
+
+    def id_episodes(n):
+        scores = phase * rng.gamma(2.0, 0.5, size=(n, chunks))
+        scores[:, 0] = np.nan  # no forecast at the first chunk
+        return episodes_from_scores(scores)
+
+    spec = DiscrepancyConfig(alpha=alpha, **options).spec
+    rates = []
+    for _ in range(40):
+        cal = fit_calibration(id_episodes(n_cal), spec, alpha=alpha)
+        new = id_episodes(fresh)
+        stats = [episode_statistic(residual_score(torch.as_tensor(e["latent_real"]), torch.as_tensor(e["latent_pred"]),
+                                                  spec, center=cal.tensors()[0], scale=cal.tensors()[1]).numpy(),
+                                   spec, cal) for e in new]
+        rates.append(np.mean([first_above(list(s), cal.tau) is not None for s in stats]))
+    held = n_cal - cal.fit_episodes
+    mean = float(np.mean(rates))
+    sem = float(np.std(rates) / np.sqrt(len(rates)))
+    assert alpha - 1 / (held + 1) - 3 * sem <= mean <= alpha + 3 * sem, (mean, sem, held)
+
+
+def test_detector_calibrates_then_flags_above_tau_and_never_at_the_first_chunk():
+    from tensordict import TensorDict
+
+    det = DiscrepancyDetector(DiscrepancyConfig(alpha=0.5))
+    assert det.needs_calibration
+    det.calibrate(episodes_from_scores(np.array([[np.nan, 0.1, 0.2], [np.nan, 0.3, 0.1], [np.nan, 0.2, 0.4]])))
+    assert det.tau == pytest.approx(0.3) and not det.needs_calibration  # maxima 0.2, 0.3, 0.4: the 2nd
+    real = torch.zeros(3, 2, 4)
+    pred = torch.stack([torch.full((2, 4), float("nan")), torch.full((2, 4), 0.7), torch.full((2, 4), 0.5)])
+    td = TensorDict({("ddp", "latent_real"): real, ("ddp", "latent_pred"): pred,
+                     "chunk_index": torch.tensor([[0], [3], [3]])}, batch_size=[3])
+    out = det(td)
+    assert out["ddp", "ood"].tolist() == [False, True, False]  # 0.49 > 0.3, 0.25 is not; no forecast: never
+    assert math.isnan(out["ddp", "score"][0]) and out["ddp", "score"][1] == pytest.approx(0.49)
+    other = DiscrepancyDetector(DiscrepancyConfig(alpha=0.5))
+    other.load_calibration(json.loads(json.dumps(det.calibration())))
+    assert other(td)["ddp", "ood"].tolist() == [False, True, False]
+
+
+def test_calibration_file_round_trips_and_is_bound_to_model_detector_and_env(tmp_path, tiny_recipe):
+    from ddp import build
+
+    exp = build(tiny_recipe)
+    det = DiscrepancyDetector(DiscrepancyConfig(alpha=0.5, per_chunk=True))
+    det.calibrate(episodes_from_scores(np.array([[np.nan, 0.1, 0.2], [np.nan, 0.3, 0.1], [np.nan, 0.2, 0.4],
+                                                 [np.nan, 0.1, 0.3]])))
+    key = dict(model_hash=model_digest(exp.model), detector={"name": "discrepancy", "alpha": 0.5}, id_env={"a": 1},
+               episodes=4, seed=7)
+    path = save_calibration(calibration_path(tmp_path / "last.pt"), det.calibration(), **key)
+    assert path.name == "last.calibration.json"
+    again = DiscrepancyDetector(DiscrepancyConfig(alpha=0.5, per_chunk=True))
+    again.load_calibration(load_calibration(path, **key))
+    assert results_json.dumps(again.calibration()) == results_json.dumps(det.calibration())
+    assert math.isnan(again.calibration()["reference"][0][0])  # stored as null, read back as NaN
+    assert not again.needs_calibration
+    for change in ({"seed": 8}, {"id_env": {"a": 2}}, {"detector": {"name": "discrepancy", "alpha": 0.1}},
+                   {"model_hash": "0" * 16}):
+        assert load_calibration(path, **{**key, **change}) is None, change
+    with torch.no_grad():
+        next(exp.model.parameters()).add_(1.0)
+    assert model_digest(exp.model) != key["model_hash"]
+
+
+# ----------------------------------------------------------------------------------------- metrics
+def test_detection_metrics_count_delays_misses_and_false_alarms():
+    eps = [
+        {"seed": 0, "mode": [0, 0, 0, 1, 1], "disturbed": [0, 0, 1, 1, 1], "score": [math.nan, 0.1, 0.2, 0.9, 0.9]},
+        {"seed": 1, "mode": [0, 0, 1, 1, 1], "disturbed": [0, 0, 1, 1, 1], "score": [math.nan, 0.1, 0.8, 0.9, 0.9]},
+        {"seed": 2, "mode": [0, 0, 0, 0, 0], "disturbed": [0, 0, 1, 1, 1], "score": [math.nan, 0.1, 0.1, 0.1, 0.1]},
+        {"seed": 3, "mode": [0, 1, 0, 0, 0], "disturbed": [0, 0, 0, 0, 0], "score": [math.nan, 0.6, 0.1, 0.1, 0.1]},
+        {"seed": 4, "mode": [0, 1, 1, 1, 1], "disturbed": [0, 0, 0, 1, 1], "score": [math.nan, 0.6, 0.1, 0.1, 0.1]},
+    ]
+    m = detection_metrics(eps, reference=[[math.nan, 0.1, 0.1, 0.1, 0.1], [math.nan, 0.2, 0.2, 0.2, 0.2]])
+    assert m["disturbed_episodes"] == 4 and m["clean_episodes"] == 1
+    # seed 0: delay 1; seed 1: delay 0; seed 2: missed; seed 4: OOD since chunk 1 (a false alarm), never switched
+    assert m["detected"] == 2 and m["missed"] == 2 and m["detected_within_1"] == 2 and m["median_delay"] == 0.5
+    assert [e["delay"] for e in m["per_episode"]] == [1, 0, None, None, None]
+    assert m["episodes_with_false_alarm"] == 2  # seed 3 (clean) and seed 4 (before its disturbance)
+    assert m["false_alarms_per_id_chunk"] == pytest.approx(2 / (5 + 2 + 2 + 2 + 3))
+    # at first visibility: disturbed scores 0.2, 0.8, 0.1, 0.1 against ID 0.1 / 0.2 at those chunks
+    assert m["auroc_after_visible"][0] == pytest.approx(auroc([0.1, 0.2] * 3 + [0.1, 0.2], [0.2, 0.8, 0.1, 0.1]))
+
+
+# ----------------------------------------------------------------------------------------- controller
+def test_controller_never_leaves_id_on_the_forecast_less_first_chunk(tiny_recipe):
+    from ddp.evaluate import make_chunked_env
+
+    exp = displaced_exp(tiny_recipe)
+    ctrl = exp.make_controller(detector={"name": "discrepancy", "tau": 1e-30})  # anything finite is above it
+    env = make_chunked_env(exp, seed=0, overrides={})
+    ctrl.reset()
+    r = env.rollout(3, ctrl, break_when_any_done=False)
+    assert r["ddp", "mode"].tolist() == [0, 1, 1]
+    assert torch.isnan(r["ddp", "latent_pred"][0]).all() and torch.isfinite(r["ddp", "latent_pred"][1]).all()
+
+
+def test_nan_latents_flag_ood_and_a_false_alarm_returns_to_reality(tiny_recipe):
+    from ddp.evaluate import make_chunked_env
+
+    exp = displaced_exp(tiny_recipe)
+    ctrl = exp.make_controller(detector={"name": "discrepancy", "tau": 1e9})
+    env = make_chunked_env(exp, seed=0, overrides={"displacement": False})
+    ctrl.reset()
+    td = env.reset()
+    td = ctrl(td)
+    td = env.step(td)["next"]
+    td = ctrl(td)  # a forecast exists now
+    # the encoder's latents come out NaN for one cycle: OOD, acting from the forecast
+    enc = exp.model.encode
+    exp.model.encode = lambda pc, pos: enc(pc, pos) * float("nan")
+    td = ctrl(env.step(td)["next"])
+    exp.model.encode = enc
+    assert td["ddp", "mode"].item() == 1 and td["ddp", "imagined"].item()
+    # nothing displaced to track or recover: the next cycle re-checks the statistic and returns to reality
+    td = ctrl(env.step(td)["next"])
+    assert td["ddp", "mode"].item() == 0 and not td["ddp", "imagined"].item()
+    # a false alarm in ID (the statistic above tau once, nothing displaced): one cycle of imagination, then back
+    ctrl.detector.cal.tau = 1e-30
+    td = ctrl(env.step(td)["next"])
+    assert td["ddp", "mode"].item() == 1 and td["ddp", "imagined"].item()
+    assert torch.equal(td["ee_shift"], torch.zeros(3))  # nothing tracked
+    ctrl.detector.cal.tau = 1e9
+    td = ctrl(env.step(td)["next"])
+    assert td["ddp", "mode"].item() == 0
+
+
+# ----------------------------------------------------------------------------------------- ddp detect
+def test_ddp_detect_cli_writes_the_comparison(tiny_recipe, tmp_path):
+    from ddp import build
+    from ddp.cli import main
+
+    tiny_recipe["env"].update(displacement_chunk=1, displacement_delta=[0.2, 0.0, 0.0], max_episode_steps=32)
+    tiny_recipe["train"].update(max_steps=2, epochs=1, output_dir=str(tmp_path / "run"))
+    exp = build(tiny_recipe)
+    exp.train(progress=False)
+    out = tmp_path / "detect"
+    code = main(["detect", "--checkpoint", str(tmp_path / "run" / "last.pt"), "--episodes", "2",
+                 "--calibration-episodes", "4", "--alpha", "0.5", "--scores", "paper,per_chunk_cusum",
+                 "--env", "displacement_chunk=2", "--output-dir", str(out), "--quiet"])
+    assert code == 0
+    rep = json.loads((out / "detect.json").read_text())
+    assert [r["score"] for r in rep["rows"]] == ["paper", "per_chunk_cusum"] and rep["env"] == {"displacement_chunk": 2}
+    assert rep["first_visible"]["ood_base"] == [3, 3]  # displaced before chunk 2's actions, seen at chunk 3
+    row = rep["rows"][0]
+    assert row["ood_base"]["episodes"] == 2 and row["id_episodes"] == 2 and row["tau"] > 0
+    assert "| paper | ood_base |" in (out / "detect.md").read_text()
+    assert (out / "detect_paper.png").stat().st_size > 0
+    assert main(["detect", "--checkpoint", str(tmp_path / "run" / "last.pt"), "--scores", "papr"]) == 2
