@@ -69,11 +69,15 @@ def detection_table(report: dict) -> str:
         what = det.get("name", "?")
         if det.get("name") == "discrepancy":
             what += f" (alpha {r.get('alpha')})" if det.get("tau") is None else f" (tau {det.get('tau')})"
-        au = "/".join(fmt_num(a, "{:.2f}") for a in (m.get("auroc_after_visible") or [])) or "-"
+        aurocs = [a for a in (m.get("auroc_after_visible") or []) if a is not None and a == a]
+        au = "/".join(fmt_num(a, "{:.2f}") for a in m["auroc_after_visible"]) if aurocs else "-"
         n = m["disturbed_episodes"] + m["clean_episodes"]
+        detected, missed = "-", "-"
+        if m["disturbed_episodes"]:
+            detected = f"{m['detected']}/{m['disturbed_episodes']} ({m['detected_within_1']})"
+            missed = str(m["missed"])
         lines.append(
-            f"| {name} | {what} | {m['detected']}/{m['disturbed_episodes']} ({m['detected_within_1']}) | "
-            f"{fmt_num(m['median_delay'], '{:.1f}')} | {m['missed']} | {m['episodes_with_false_alarm']}/{n} | "
-            f"{fmt_num(m['false_alarms_per_id_chunk'])} | {au} |"
+            f"| {name} | {what} | {detected} | {fmt_num(m['median_delay'], '{:.1f}')} | {missed} | "
+            f"{m['episodes_with_false_alarm']}/{n} | {fmt_num(m['false_alarms_per_id_chunk'])} | {au} |"
         )
     return "\n".join(lines) + "\n"
