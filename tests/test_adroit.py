@@ -125,7 +125,7 @@ def test_recipes_match_their_env(path):
     assert rec.task.action_dim == env.task_spec.action_dim and rec.task.agent_pos_dim == env.agent_pos_dim
     assert rec.task.num_points == env.num_points
     assert rec.eval.protocols == ["id", "imagination_10", "imagination_50", "imagination_100"]
-    assert rec.controller.tracker is None and parts["controller.detector"].plugin.name == "never"
+    assert rec.controller.tracker is None and parts["controller.detector"].plugin.name == "discrepancy"
     assert parts["data"].config.episodes == 10
     if path.name.startswith("cpu_"):
         assert rec.policy.denoiser["down_dims"] == [64, 128, 256] and rec.task.num_points == 128
