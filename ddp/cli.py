@@ -138,7 +138,7 @@ def cmd_detect(args) -> int:
     from ddp.errors import suggest
     from ddp.experiment import build, experiment_from_checkpoint
 
-    _at_least_one(episodes=args.episodes, calibration_episodes=args.calibration_episodes)
+    _at_least_one(episodes=args.episodes, calibration_episodes=args.calibration_episodes, samples=args.samples)
     if not 0.0 < args.alpha < 1.0:
         raise DDPError(f"--alpha: must be in (0, 1); got {args.alpha}")
     variants = SCORE_VARIANTS
@@ -160,7 +160,7 @@ def cmd_detect(args) -> int:
     check_protocols(disturbances, source="--disturbances")
     rep = detect(exp, episodes=args.episodes, calibration_episodes=args.calibration_episodes, alpha=args.alpha,
                  seed=args.seed, disturbances=disturbances, env=_env_overrides(args.env), variants=variants,
-                 progress=not args.quiet, num_envs=args.num_envs or 1, parallel=args.parallel)
+                 progress=not args.quiet, num_envs=args.num_envs or 1, parallel=args.parallel, samples=args.samples)
     out = Path(args.output_dir or Path(args.checkpoint).parent / "detect")
     out.mkdir(parents=True, exist_ok=True)
     (out / "detect.json").write_text(results_json.dumps(summary_json(rep)))
@@ -303,6 +303,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--disturbances", default="ood_base", help="comma-separated protocols that disturb the episodes, run with the base policy (default ood_base; e.g. ood_base,occlusion)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE", help="env override for the disturbed episodes, e.g. --env displacement_chunk=4 --env 'displacement_delta=[0.1,0,0]' (repeatable)")
     p.add_argument("--scores", help="comma-separated statistics to compare (default: all of ddp.detection.SCORE_VARIANTS)")
+    p.add_argument("--samples", type=int, help="world-model samples per forecast (default: controller.forecast_samples); the spread statistics need > 1")
     p.add_argument("--seed", type=int, help="first test seed (default: eval.seed; calibration uses seed + 100000)")
     p.add_argument("--num-envs", type=int, help="environments stepped together")
     p.add_argument("--parallel", action="store_true", help="one worker process per env")

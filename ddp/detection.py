@@ -156,6 +156,9 @@ SCORE_VARIANTS: dict[str, dict] = {
     "whitened_per_chunk": {"whiten": True, "per_chunk": True},
     "per_chunk_cusum": {"per_chunk": True, "cusum": True},
     "point_per_chunk_cusum": {"dims": "point", "per_chunk": True, "cusum": True},
+    # need rollouts with controller.forecast_samples > 1 (ddp detect --samples K)
+    "spread": {"spread": True},
+    "point_spread": {"dims": "point", "spread": True},
 }
 
 
@@ -179,8 +182,9 @@ def _statistics(episodes: list[dict], spec, cal, point_dims: int) -> list[list[f
     center, scale = cal.tensors()
     out = []
     for ep in episodes:
+        std = torch.as_tensor(ep["latent_pred_std"]) if spec.spread else None
         s = residual_score(torch.as_tensor(ep["latent_real"]), torch.as_tensor(ep["latent_pred"]), spec,
-                           point_dims=point_dims, center=center, scale=scale).numpy()
+                           point_dims=point_dims, center=center, scale=scale, std=std).numpy()
         out.append([float(v) for v in episode_statistic(s, spec, cal)])
     return out
 
@@ -188,12 +192,14 @@ def _statistics(episodes: list[dict], spec, cal, point_dims: int) -> list[list[f
 def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, alpha: float = 0.05,
            seed: int | None = None, disturbances: tuple[str, ...] = ("ood_base",), env: dict | None = None,
            variants: dict[str, dict] | None = None, progress: bool = True, num_envs: int = 1,
-           parallel: bool = False) -> dict:
+           parallel: bool = False, samples: int | None = None) -> dict:
     """Compare detection statistics on ``exp``'s checkpoint (see the module docstring).
 
     ``disturbances``: protocols whose env disturbs the episodes (``ood_base``: the displacement,
     ``occlusion``: the blind camera), run with the base policy; ``env``: extra env overrides for
-    them (e.g. ``displacement_delta``, ``displacement_chunk`` off the paper's table).
+    them (e.g. ``displacement_delta``, ``displacement_chunk`` off the paper's table); ``samples``: world-model
+    samples per forecast (default the recipe's ``controller.forecast_samples``; the ``spread`` statistics
+    need more than one, and every statistic then compares against their mean).
     """
     from ddp.detectors.discrepancy import DiscrepancyConfig
     from ddp.detectors.scores import fit_calibration
@@ -203,6 +209,8 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
     cfg = exp.recipe.eval
     seed = cfg.seed if seed is None else seed
     n_cal = calibration_episodes or cfg.calibration_episodes
+    if samples is not None:
+        exp.recipe.controller.forecast_samples = samples
     variants = SCORE_VARIANTS if variants is None else variants
     runs = dict(progress=progress, num_envs=num_envs, parallel=parallel)
     cal_eps = _rollouts(exp, "id", episodes=n_cal, seed=seed + 100_000, env={}, **runs)
@@ -250,6 +258,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
         rows.append(row)
     return {
         "recipe": exp.recipe.name, "alpha": alpha, "episodes": episodes, "calibration_episodes": n_cal,
+        "forecast_samples": exp.recipe.controller.forecast_samples,
         "seed": seed, "disturbances": list(disturbances), "env": dict(env or {}), "rows": rows,
         "traces": traces,
         "success": {name: [bool(ep["success"]) for ep in eps] for name, eps in test.items()},
@@ -261,7 +270,8 @@ def format_detect(rep: dict) -> str:
     """The comparison as a markdown table (one row per score and disturbance)."""
     lines = [
         f"{rep['recipe']}: alpha {rep['alpha']:g} per ID episode, {rep['calibration_episodes']} ID calibration "
-        f"episodes (split: fit / threshold), {rep['episodes']} test episodes per condition, seed {rep['seed']}"
+        f"episodes (split: fit / threshold), {rep['episodes']} test episodes per condition, seed {rep['seed']}, "
+        f"{rep.get('forecast_samples', 1)} world-model sample(s) per forecast"
         + (f", env overrides {rep['env']}" if rep["env"] else ""),
         "",
         "| score | disturbance | AUROC at visible / +1 / +2 | detected (<= 1 chunk) | median delay | missed | "

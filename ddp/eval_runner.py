@@ -173,6 +173,8 @@ def _summarise(traj, env_index: int, seed: int, latents: bool = False) -> dict:
     if latents:
         out["latent_real"] = traj.get(("ddp", "latent_real")).double().numpy()
         out["latent_pred"] = traj.get(("ddp", "latent_pred")).double().numpy()
+        if ("ddp", "latent_pred_std") in traj.keys(True):
+            out["latent_pred_std"] = traj.get(("ddp", "latent_pred_std")).double().numpy()
     return out
 
 

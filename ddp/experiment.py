@@ -148,6 +148,7 @@ class Experiment:
             imagine=c.imagine if imagine is None else imagine,
             track=c.track if track is None else track,
             forecast_every_cycle=c.forecast_every_cycle if forecast_every_cycle is None else forecast_every_cycle,
+            forecast_samples=c.forecast_samples,
             seed=self.recipe.seed if seed is None else seed,
             on_nonfinite=c.on_nonfinite,
             hold=hold,

@@ -13,8 +13,10 @@ policy acted from imagined latents), ``discrepancy`` (D_R-I, NaN before the
 first prediction), ``subtask``. Before the detector runs it writes what
 detectors score: ``latent_real`` / ``latent_pred`` [B, M, D] (the real
 window and the world model's forecast of it, NaN before the first forecast,
-so nothing can flag an episode's first chunk from D_R-I) and ``point_dims``
-[B] (how many leading latent dims are point-cloud features).
+so nothing can flag an episode's first chunk from D_R-I), ``point_dims``
+[B] (how many leading latent dims are point-cloud features) and, with
+``forecast_samples`` K > 1 (the forecast is then the mean of K world-model
+samples), ``latent_pred_std`` [B, M, D], their spread.
 
 An OOD flag with no displaced object to track (a false alarm, an occlusion,
 a sensor fault) is re-checked on the next cycle: the controller imagines
@@ -55,6 +57,7 @@ class EnvState:
     ood: bool = False  # OOD_Mode
     recheck_after: int | None = None  # re-evaluate D_R-I on the first observation after this chunk
     predicted: torch.Tensor | None = None  # W_phi's forecast of the next N latents
+    spread: torch.Tensor | None = None  # std over the K forecast samples (forecast_samples > 1)
     pending: tuple | None = None  # (O_curr, a_t) of the last cycle, forecast lazily when needed
 
     @property
@@ -83,6 +86,7 @@ class DDPController(KeyedModule):
         "latent_real": ("ddp", "latent_real"),
         "latent_pred": ("ddp", "latent_pred"),
         "point_dims": ("ddp", "point_dims"),
+        "latent_pred_std": ("ddp", "latent_pred_std"),
     }
 
     def __init__(
@@ -96,6 +100,7 @@ class DDPController(KeyedModule):
         imagine: bool = True,
         track: bool = True,
         forecast_every_cycle: bool = False,
+        forecast_samples: int = 1,
         seed: int = 0,
         on_nonfinite: str = "raise",
         hold: HoldSpec | None = None,
@@ -108,6 +113,8 @@ class DDPController(KeyedModule):
         for sub in subtasks or []:
             if sub.trigger is not None:
                 check_contract("trigger", sub.trigger, name=type(sub.trigger).__name__)
+        if forecast_samples < 1:
+            raise ValueError(f"forecast_samples must be >= 1; got {forecast_samples}")
         if on_nonfinite not in ("raise", "hold"):
             raise ValueError(f"on_nonfinite must be 'raise' or 'hold'; got {on_nonfinite!r}")
         bad = first_nonfinite([*model.named_parameters(), *model.named_buffers()])
@@ -125,6 +132,7 @@ class DDPController(KeyedModule):
         self.imagine = imagine
         self.track = track
         self.forecast_every_cycle = forecast_every_cycle
+        self.forecast_samples = forecast_samples
         self.seed = seed
         self.on_nonfinite = on_nonfinite
         self.hold = DELTAS if hold is None else hold
@@ -168,9 +176,16 @@ class DDPController(KeyedModule):
             return
         hist = torch.stack([self.states[b].pending[0] for b in todo])
         acts = torch.stack([self.states[b].pending[1] for b in todo])
-        predicted = self.model.imagine(hist, acts, generator=self.generator)
+        k = self.forecast_samples
+        if k == 1:
+            predicted, spread = self.model.imagine(hist, acts, generator=self.generator), None
+        else:  # K samples in one batched call: their mean is the forecast, their std its uncertainty
+            samples = self.model.imagine(hist.repeat(k, 1, 1), acts.repeat(k, 1, 1), generator=self.generator)
+            samples = samples.reshape(k, len(todo), *samples.shape[1:])
+            predicted, spread = samples.mean(0), samples.std(0)
         for i, b in enumerate(todo):
             self.states[b].predicted, self.states[b].pending = predicted[i], None
+            self.states[b].spread = None if spread is None else spread[i]
 
     def _discrepancy(self, real: torch.Tensor, s: EnvState) -> float:
         """D_R-I = ||O_real - O_pred||^2, averaged over the M latest frames and the latent dims."""
@@ -234,6 +249,10 @@ class DDPController(KeyedModule):
             s.predicted[-M:].to(real) if s.predicted is not None else nan for s in self.states
         ]).float().to(env_device))
         td.set(self.key("point_dims"), torch.full((B,), self.model.point_dims, dtype=torch.int64))
+        if self.forecast_samples > 1:
+            td.set(self.key("latent_pred_std"), torch.stack([
+                s.spread[-M:].to(real) if s.spread is not None and s.predicted is not None else nan for s in self.states
+            ]).float().to(env_device))
 
         # Delta p_C per tracked object [B, K, 3]: the tracker's output sizes the object masks (K = 0 without one)
         offsets = self.tracker(td).get(self.tracker.key("offsets")) if self.tracker is not None else None
@@ -327,7 +346,7 @@ class DDPController(KeyedModule):
             # against, in OOD the autoregressive imagination the policy acts from (made lazily).
             for b, s in enumerate(self.states):
                 s.pending = None if held[b] else (current[b], actions[b].to(dev))
-                s.predicted = None
+                s.predicted, s.spread = None, None
 
         td.set(self.key("action"), actions.to(env_device))
         td.set(self.key("ee_shift"), ee_shift)

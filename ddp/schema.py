@@ -141,6 +141,8 @@ class ControllerConfig:
     track: bool = True  # execute the tracking shift a^track on an OOD event
     safe_lift: float = 0.0  # lift (m) before an end-effector shift, to avoid dragging through the table
     forecast_every_cycle: bool = False  # always run the world model (D_R-I diagnostics with any detector)
+    forecast_samples: int = 1  # world-model samples per forecast: K > 1 forecasts their mean, and their spread
+    # (("ddp", "latent_pred_std")) lets a detector with spread: true scale residuals by the model's own uncertainty
     # an environment whose observation is not finite and that cannot act from imagination, or whose
     # sampled actions are not finite: "raise" a one-line error, or "hold" (the env's hold action:
     # zero motion, gripper command unchanged). A non-finite action is never emitted either way.

@@ -216,3 +216,36 @@ def test_ddp_detect_cli_writes_the_comparison(tiny_recipe, tmp_path):
     assert "| paper | ood_base |" in (out / "detect.md").read_text()
     assert (out / "detect_paper.png").stat().st_size > 0
     assert main(["detect", "--checkpoint", str(tmp_path / "run" / "last.pt"), "--scores", "papr"]) == 2
+
+
+def test_forecast_samples_give_a_mean_forecast_and_its_spread(tiny_recipe):
+    from ddp.evaluate import make_chunked_env
+
+    tiny_recipe["controller"] = {"detector": {"name": "never"}, "forecast_samples": 3, "forecast_every_cycle": True}
+    tiny_recipe["env"]["max_episode_steps"] = 32
+    from ddp import build
+    from conftest import fit_normalizer
+
+    exp = fit_normalizer(build(tiny_recipe))
+    ctrl = exp.make_controller()
+    calls = []
+    imagine = exp.model.imagine
+    exp.model.imagine = lambda h, a, generator=None: calls.append(h.shape[0]) or imagine(h, a, generator=generator)
+    env = make_chunked_env(exp, seed=0, overrides={})
+    r = env.rollout(3, ctrl, break_when_any_done=False)
+    assert calls == [3, 3]  # K = 3 samples per forecast, one batched call
+    std = r["ddp", "latent_pred_std"]
+    assert torch.isnan(std[0]).all() and (std[1:] > 0).all()  # no forecast at chunk 0; samples differ
+    # a spread-scaled detector calibrates on such rollouts and reads the spread online
+    det = DiscrepancyDetector(DiscrepancyConfig(alpha=0.5, spread=True))
+    eps = [{"latent_real": r["ddp", "latent_real"].double().numpy(), "latent_pred": r["ddp", "latent_pred"].double().numpy(),
+            "latent_pred_std": std.double().numpy()}] * 2
+    det.calibrate(eps)
+    assert len(det.calibration()["scale"]) == std.shape[-1] and det.tau > 0
+    out = det(r.select(("ddp", "latent_real"), ("ddp", "latent_pred"), ("ddp", "latent_pred_std"), "chunk_index"))
+    assert out["ddp", "score"][1:].isfinite().all()
+    with pytest.raises(ValueError, match="forecast_samples > 1"):
+        DiscrepancyDetector(DiscrepancyConfig(alpha=0.5, spread=True)).calibrate(
+            [{k: v for k, v in e.items() if k != "latent_pred_std"} for e in eps])
+    with pytest.raises(ValueError, match="alternative normalisations"):
+        DiscrepancyConfig(whiten=True, spread=True)

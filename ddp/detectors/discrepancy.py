@@ -6,7 +6,7 @@ rollouts to a stated false-alarm rate: ``alpha`` is the probability that an
 ID episode raises an alarm at all, and the threshold is the split-conformal
 quantile of ID episode maxima (``ddp.detectors.scores``), valid for any
 number of calibration episodes that allows it. ``dims`` / ``frames`` /
-``whiten`` / ``per_chunk`` / ``cusum`` choose another statistic of the same
+``whiten`` / ``spread`` / ``per_chunk`` / ``cusum`` choose another statistic of the same
 residual (see ``ddp.detectors.scores``; ``ddp detect`` compares them on a
 checkpoint). ``tau`` fixes the threshold instead (in the statistic's units).
 
@@ -38,6 +38,7 @@ class DiscrepancyConfig:
     window: int = 1  # per_chunk: neighbouring chunks pooled on each side
     cusum: bool = False  # accumulate evidence over chunks (CUSUM on the normalised score)
     drift: float = 1.0  # cusum: subtracted each chunk, in units of the ID median score
+    spread: bool = False  # residuals scaled by the forecast samples' spread (controller.forecast_samples > 1)
     fit_fraction: float = 0.5  # calibration: share of ID episodes fitting the score; the rest set tau
 
     def __post_init__(self):
@@ -51,7 +52,8 @@ class DiscrepancyConfig:
 
     @property
     def spec(self) -> ScoreSpec:
-        return ScoreSpec(self.dims, self.frames, self.whiten, self.per_chunk, self.window, self.cusum, self.drift)
+        return ScoreSpec(self.dims, self.frames, self.whiten, self.per_chunk, self.window, self.cusum, self.drift,
+                         self.spread)
 
 
 @register("detector", "discrepancy", config=DiscrepancyConfig)
@@ -60,7 +62,7 @@ class DiscrepancyDetector(KeyedModule):
 
     default_in_keys = {
         "real": ("ddp", "latent_real"), "pred": ("ddp", "latent_pred"), "point_dims": ("ddp", "point_dims"),
-        "chunk_index": "chunk_index",
+        "chunk_index": "chunk_index", "pred_std": ("ddp", "latent_pred_std"),
     }
     default_out_keys = {"ood": ("ddp", "ood"), "score": ("ddp", "score")}
     sticky = True  # once OOD, stay until recovery and a re-check say otherwise
@@ -81,7 +83,7 @@ class DiscrepancyDetector(KeyedModule):
     def needs_calibration(self) -> bool:
         """No threshold yet, or a statistic whose ID reference is not fitted: ``ddp eval`` calibrates it."""
         fitted = self.cal.median is not None or not self.spec.normalised
-        fitted = fitted and (self.cal.center is not None or not self.spec.whiten)
+        fitted = fitted and (self.cal.center is not None or not (self.spec.whiten or self.spec.spread))
         return self.cal.tau is None or not fitted
 
     def calibrate(self, episodes, *, point_dims: int = 0) -> float:
@@ -111,7 +113,11 @@ class DiscrepancyDetector(KeyedModule):
         point_dims = td.get(self.key("point_dims"), None)
         pd = int(point_dims.reshape(-1)[0]) if point_dims is not None else 0
         center, scale = self.cal.tensors()
-        score = residual_score(real, pred, self.spec, point_dims=pd, center=center, scale=scale).reshape(-1)
+        std = td.get(self.key("pred_std"), None) if self.spec.spread else None
+        if self.spec.spread and std is None:
+            raise RuntimeError("detector option spread: true needs controller.forecast_samples > 1 "
+                               "(no ('ddp', 'latent_pred_std') to scale by)")
+        score = residual_score(real, pred, self.spec, point_dims=pd, center=center, scale=scale, std=std).reshape(-1)
         chunks = td.get(self.key("chunk_index")).reshape(-1).tolist()
         if len(self._acc) != score.numel():
             self._acc = [0.0] * score.numel()

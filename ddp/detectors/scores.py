@@ -11,6 +11,10 @@ same two latent windows (``real``, ``pred``: ``[..., M, D]``):
   ``max`` over frames;
 * ``whiten``: residuals centred and divided per latent dim by their ID
   mean / std (from calibration rollouts) before squaring;
+* ``spread``: residuals divided per latent dim by the spread of the K
+  world-model samples behind the forecast (controller ``forecast_samples``
+  K > 1; a diffusion model's own uncertainty), floored by the median ID
+  spread of that dim so a confident dim cannot blow up;
 * ``per_chunk``: the score divided by the ID score typical of the task's
   phase (the median at chunks ``c - window .. c + window``), so a contact
   phase with large ID errors does not set the threshold for an approach
@@ -34,7 +38,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["ScoreSpec", "ScoreCalibration", "residual_score", "conformal_threshold", "episode_statistic"]
+__all__ = [
+    "ScoreSpec", "ScoreCalibration", "residual_score", "conformal_threshold", "episode_statistic", "fit_calibration",
+]
 
 DIMS = ("all", "point", "state")
 FRAMES = ("mean", "newest", "max")
@@ -51,8 +57,11 @@ class ScoreSpec:
     window: int = 1
     cusum: bool = False
     drift: float = 1.0
+    spread: bool = False
 
     def __post_init__(self):
+        if self.whiten and self.spread:
+            raise ValueError("whiten and spread are alternative normalisations of the residual: choose one")
         if self.dims not in DIMS:
             raise ValueError(f"dims must be one of {DIMS}; got {self.dims!r}")
         if self.frames not in FRAMES:
@@ -70,12 +79,14 @@ class ScoreSpec:
     @property
     def needs_reference(self) -> bool:
         """Reference statistics must be fitted on ID rollouts before the score means anything."""
-        return self.whiten or self.normalised
+        return self.whiten or self.spread or self.normalised
 
     def label(self) -> str:
         parts = [f"{self.dims} dims", f"{self.frames} frame" if self.frames != "mean" else "mean frames"]
         if self.whiten:
             parts.append("whitened")
+        if self.spread:
+            parts.append("by sample spread")
         if self.per_chunk:
             parts.append(f"per-chunk (window {self.window})")
         if self.cusum:
@@ -93,11 +104,19 @@ def _dim_slice(dims: str, point_dims: int, total: int) -> slice:
 
 
 def residual_score(real: torch.Tensor, pred: torch.Tensor, spec: ScoreSpec, *, point_dims: int = 0,
-                   center: torch.Tensor | None = None, scale: torch.Tensor | None = None) -> torch.Tensor:
+                   center: torch.Tensor | None = None, scale: torch.Tensor | None = None,
+                   std: torch.Tensor | None = None) -> torch.Tensor:
     """The instantaneous score of ``real`` against ``pred`` (``[..., M, D]`` each) -> ``[...]``; NaN where
-    ``pred`` is NaN (no forecast yet). ``center`` / ``scale`` ([D]) whiten when ``spec.whiten``."""
+    ``pred`` is NaN (no forecast yet). ``center`` / ``scale`` ([D]) whiten when ``spec.whiten``; with
+    ``spec.spread``, ``std`` (``[..., M, D]``, the forecast samples' spread) divides the residual, floored
+    by ``scale`` (the ID median spread per dim)."""
     r = real.double() - pred.double()
-    if spec.whiten:
+    if spec.spread:
+        if std is None or scale is None:
+            raise ValueError("a spread-scaled score needs the forecast samples' spread (controller.forecast_samples "
+                             "> 1) and its ID floor (calibrate the detector)")
+        r = r / torch.sqrt(std.double() ** 2 + scale.to(r) ** 2)
+    elif spec.whiten:
         if center is None or scale is None:
             raise ValueError("a whitened score needs the ID residual mean and std (calibrate the detector)")
         r = (r - center.to(r)) / scale.to(r)
@@ -181,13 +200,23 @@ class ScoreCalibration:
         return torch.tensor(self.center, dtype=torch.float64), torch.tensor(self.scale, dtype=torch.float64)
 
 
+def _episode_std(ep: dict, spec: ScoreSpec) -> torch.Tensor | None:
+    if not spec.spread:
+        return None
+    if ep.get("latent_pred_std") is None:
+        raise ValueError("a spread-scaled score needs rollouts with controller.forecast_samples > 1 "
+                         "(the forecast samples' spread is not recorded)")
+    return torch.as_tensor(np.asarray(ep["latent_pred_std"], dtype=np.float64))
+
+
 def _scores(episodes, spec: ScoreSpec, point_dims: int, cal: ScoreCalibration) -> list[np.ndarray]:
     center, scale = cal.tensors()
     out = []
     for ep in episodes:
         real = torch.as_tensor(np.asarray(ep["latent_real"], dtype=np.float64))
         pred = torch.as_tensor(np.asarray(ep["latent_pred"], dtype=np.float64))
-        s = residual_score(real, pred, spec, point_dims=point_dims, center=center, scale=scale).numpy()
+        std = _episode_std(ep, spec)
+        s = residual_score(real, pred, spec, point_dims=point_dims, center=center, scale=scale, std=std).numpy()
         out.append(np.where(np.isfinite(s), s, np.nan))  # a non-finite chunk (sensor fault) is no ID evidence
     return out
 
@@ -216,6 +245,13 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
             raise ValueError("whitening needs ID residuals from at least two forecast chunks")
         cal.center = res.mean(0).tolist()
         cal.scale = np.maximum(res.std(0), 1e-8).tolist()
+    if spec.spread:
+        stds = np.concatenate([_episode_std(e, spec).numpy().reshape(-1, np.shape(e["latent_real"])[-1]) for e in fit])
+        stds = stds[np.isfinite(stds).all(1)]
+        if stds.shape[0] == 0:
+            raise ValueError("no forecast spread recorded in the ID episodes (no chunk had a forecast)")
+        cal.center = [0.0] * stds.shape[1]
+        cal.scale = np.maximum(np.median(stds, 0), 1e-8).tolist()  # the floor: median ID spread per dim
     if spec.normalised:
         raw = _scores(fit, spec, point_dims, cal)
         allv = np.concatenate([s[np.isfinite(s)] for s in raw])
