@@ -134,7 +134,9 @@ def cmd_detect(args) -> int:
     from pathlib import Path
 
     from ddp import results_json
-    from ddp.detection import SCORE_VARIANTS, detect, format_detect, plot_detect, summary_json
+    from ddp.detection import (
+        SCORE_VARIANTS, detect, format_detect, load_rollouts, plot_detect, save_rollouts, summary_json,
+    )
     from ddp.errors import suggest
     from ddp.experiment import build, experiment_from_checkpoint
 
@@ -158,18 +160,33 @@ def cmd_detect(args) -> int:
     from ddp.protocols.base import check_protocols
 
     check_protocols(disturbances, source="--disturbances")
-    rep = detect(exp, episodes=args.episodes, calibration_episodes=args.calibration_episodes, alpha=args.alpha,
-                 seed=args.seed, disturbances=disturbances, env=_env_overrides(args.env), variants=variants,
-                 progress=not args.quiet, num_envs=args.num_envs or 1, parallel=args.parallel, samples=args.samples)
+    rollouts = None
+    if args.rollouts:
+        if not Path(args.rollouts).is_file():
+            raise DDPError(f"--rollouts: no such file: {args.rollouts}")
+        try:
+            rollouts = load_rollouts(args.rollouts)
+        except (OSError, ValueError) as err:
+            raise DDPError(f"--rollouts: {args.rollouts} is not a ddp detect rollouts file ({err})") from None
+    try:
+        rep = detect(exp, episodes=args.episodes, calibration_episodes=args.calibration_episodes, alpha=args.alpha,
+                     seed=args.seed, disturbances=disturbances, env=_env_overrides(args.env), variants=variants,
+                     progress=not args.quiet, num_envs=args.num_envs or 1, parallel=args.parallel,
+                     samples=args.samples, rollouts=rollouts)
+    except ValueError as err:
+        raise DDPError(str(err)) from None
     out = Path(args.output_dir or Path(args.checkpoint).parent / "detect")
     out.mkdir(parents=True, exist_ok=True)
+    if rollouts is None:
+        save_rollouts(rep["rollouts"], out / "detect_rollouts.npz")
     (out / "detect.json").write_text(results_json.dumps(summary_json(rep)))
     (out / "detect_traces.json").write_text(results_json.dumps(rep["traces"], indent=None))
     (out / "detect.md").write_text(format_detect(rep))
     for score in rep["traces"]:
         plot_detect(rep, score, out / f"detect_{score}.png")
     print(format_detect(rep))
-    print(f"wrote {out}/detect.json, detect.md, detect_traces.json and one detect_<score>.png per score")
+    print(f"wrote {out}/detect.json, detect.md, detect_traces.json, one detect_<score>.png per score"
+          + ("" if rollouts else " and detect_rollouts.npz (--rollouts scores new statistics without rolling out)"))
     return 0
 
 
@@ -303,6 +320,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--disturbances", default="ood_base", help="comma-separated protocols that disturb the episodes, run with the base policy (default ood_base; e.g. ood_base,occlusion)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE", help="env override for the disturbed episodes, e.g. --env displacement_chunk=4 --env 'displacement_delta=[0.1,0,0]' (repeatable)")
     p.add_argument("--scores", help="comma-separated statistics to compare (default: all of ddp.detection.SCORE_VARIANTS)")
+    p.add_argument("--rollouts", help="score the rollouts a previous ddp detect saved (detect_rollouts.npz) instead of rolling out")
     p.add_argument("--samples", type=int, help="world-model samples per forecast (default: controller.forecast_samples); the spread statistics need > 1")
     p.add_argument("--seed", type=int, help="first test seed (default: eval.seed; calibration uses seed + 100000)")
     p.add_argument("--num-envs", type=int, help="environments stepped together")

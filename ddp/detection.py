@@ -151,6 +151,7 @@ SCORE_VARIANTS: dict[str, dict] = {
     "max_frame": {"frames": "max"},
     "point_dims": {"dims": "point"},
     "point_newest": {"dims": "point", "frames": "newest"},
+    "point_newest_per_chunk": {"dims": "point", "frames": "newest", "per_chunk": True},
     "whitened": {"whiten": True},
     "per_chunk": {"per_chunk": True},
     "whitened_per_chunk": {"whiten": True, "per_chunk": True},
@@ -192,14 +193,16 @@ def _statistics(episodes: list[dict], spec, cal, point_dims: int) -> list[list[f
 def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, alpha: float = 0.05,
            seed: int | None = None, disturbances: tuple[str, ...] = ("ood_base",), env: dict | None = None,
            variants: dict[str, dict] | None = None, progress: bool = True, num_envs: int = 1,
-           parallel: bool = False, samples: int | None = None) -> dict:
+           parallel: bool = False, samples: int | None = None, rollouts: dict | None = None) -> dict:
     """Compare detection statistics on ``exp``'s checkpoint (see the module docstring).
 
     ``disturbances``: protocols whose env disturbs the episodes (``ood_base``: the displacement,
     ``occlusion``: the blind camera), run with the base policy; ``env``: extra env overrides for
     them (e.g. ``displacement_delta``, ``displacement_chunk`` off the paper's table); ``samples``: world-model
     samples per forecast (default the recipe's ``controller.forecast_samples``; the ``spread`` statistics
-    need more than one, and every statistic then compares against their mean).
+    need more than one, and every statistic then compares against their mean). ``rollouts``: the
+    ``"rollouts"`` of an earlier report (see :func:`save_rollouts` / :func:`load_rollouts`) to score
+    new statistics on without rolling out again.
     """
     from ddp.detectors.discrepancy import DiscrepancyConfig
     from ddp.detectors.scores import fit_calibration
@@ -213,10 +216,18 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
         exp.recipe.controller.forecast_samples = samples
     variants = SCORE_VARIANTS if variants is None else variants
     runs = dict(progress=progress, num_envs=num_envs, parallel=parallel)
-    cal_eps = _rollouts(exp, "id", episodes=n_cal, seed=seed + 100_000, env={}, **runs)
-    test = {"id": _rollouts(exp, "id", episodes=episodes, seed=seed, env={}, **runs)}
-    for name in disturbances:
-        test[name] = _rollouts(exp, name, episodes=episodes, seed=seed, env=dict(env or {}), **runs)
+    if rollouts is None:
+        cal_eps = _rollouts(exp, "id", episodes=n_cal, seed=seed + 100_000, env={}, **runs)
+        test = {"id": _rollouts(exp, "id", episodes=episodes, seed=seed, env={}, **runs)}
+        for name in disturbances:
+            test[name] = _rollouts(exp, name, episodes=episodes, seed=seed, env=dict(env or {}), **runs)
+    else:
+        missing = [n for n in ("calibration", "id", *disturbances) if n not in rollouts]
+        if missing:
+            raise ValueError(f"the saved rollouts hold no {', '.join(missing)} episodes "
+                             f"(they have {', '.join(rollouts)})")
+        cal_eps, test = rollouts["calibration"], {n: rollouts[n] for n in ("id", *disturbances)}
+        n_cal, episodes = len(cal_eps), len(test["id"])
     pd = exp.model.point_dims
     rows, traces = [], {}
     for label, options in variants.items():
@@ -263,7 +274,42 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
         "traces": traces,
         "success": {name: [bool(ep["success"]) for ep in eps] for name, eps in test.items()},
         "first_visible": {name: [_first_visible(ep) for ep in eps] for name, eps in test.items() if name != "id"},
+        "rollouts": {"calibration": cal_eps, **test},
     }
+
+
+_EPISODE_ARRAYS = ("latent_real", "latent_pred", "latent_pred_std")
+
+
+def save_rollouts(rollouts: dict, path) -> None:
+    """The latent windows, disturbance flags and success of every rollout, as one compressed ``.npz``
+    (plain arrays: loading it runs no code)."""
+    arrays = {}
+    for name, eps in rollouts.items():
+        for i, ep in enumerate(eps):
+            for key in _EPISODE_ARRAYS:
+                if ep.get(key) is not None:
+                    arrays[f"{name}/{i}/{key}"] = np.asarray(ep[key], dtype=np.float32)
+            arrays[f"{name}/{i}/disturbed"] = np.asarray(ep.get("disturbed") or [], dtype=bool)
+            arrays[f"{name}/{i}/meta"] = np.asarray([ep["seed"], int(ep["success"])], dtype=np.int64)
+    np.savez_compressed(path, **arrays)
+
+
+def load_rollouts(path) -> dict:
+    """What :func:`save_rollouts` wrote, as ``{condition: [episode dict, ...]}``."""
+    out: dict[str, dict[int, dict]] = {}
+    with np.load(path, allow_pickle=False) as data:
+        for key in data.files:
+            name, i, field = key.rsplit("/", 2)
+            ep = out.setdefault(name, {}).setdefault(int(i), {})
+            value = data[key]
+            if field == "meta":
+                ep["seed"], ep["success"] = int(value[0]), bool(value[1])
+            elif field == "disturbed":
+                ep["disturbed"] = value.tolist()
+            else:
+                ep[field] = value.astype(np.float64)
+    return {name: [eps[i] for i in sorted(eps)] for name, eps in out.items()}
 
 
 def format_detect(rep: dict) -> str:
@@ -333,7 +379,7 @@ def plot_detect(rep: dict, score: str, path) -> None:
 
 
 def summary_json(rep: dict) -> dict:
-    """``rep`` without the per-chunk traces (what is worth committing)."""
-    return {k: v for k, v in rep.items() if k != "traces"}
+    """``rep`` without the per-chunk traces and rollouts (what is worth committing)."""
+    return {k: v for k, v in rep.items() if k not in ("traces", "rollouts")}
 
 

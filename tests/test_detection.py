@@ -216,6 +216,16 @@ def test_ddp_detect_cli_writes_the_comparison(tiny_recipe, tmp_path):
     assert "| paper | ood_base |" in (out / "detect.md").read_text()
     assert (out / "detect_paper.png").stat().st_size > 0
     assert main(["detect", "--checkpoint", str(tmp_path / "run" / "last.pt"), "--scores", "papr"]) == 2
+    # the saved rollouts score other statistics without rolling out: the same numbers for the same statistic
+    again, ckpt, saved = tmp_path / "again", str(tmp_path / "run" / "last.pt"), str(out / "detect_rollouts.npz")
+    assert main(["detect", "--checkpoint", ckpt, "--rollouts", saved, "--alpha", "0.5",
+                 "--scores", "paper,point_newest", "--disturbances", "ood_base",
+                 "--output-dir", str(again), "--quiet"]) == 0
+    rep2 = json.loads((again / "detect.json").read_text())
+    assert rep2["rows"][0]["tau"] == row["tau"] and rep2["rows"][0]["ood_base"] == row["ood_base"]
+    assert rep2["first_visible"] == {"ood_base": [3, 3]}
+    assert main(["detect", "--checkpoint", ckpt, "--rollouts", saved, "--disturbances", "occlusion",
+                 "--quiet"]) == 2  # not in the saved rollouts: one line
 
 
 def test_forecast_samples_give_a_mean_forecast_and_its_spread(tiny_recipe):
@@ -238,8 +248,8 @@ def test_forecast_samples_give_a_mean_forecast_and_its_spread(tiny_recipe):
     assert torch.isnan(std[0]).all() and (std[1:] > 0).all()  # no forecast at chunk 0; samples differ
     # a spread-scaled detector calibrates on such rollouts and reads the spread online
     det = DiscrepancyDetector(DiscrepancyConfig(alpha=0.5, spread=True))
-    eps = [{"latent_real": r["ddp", "latent_real"].double().numpy(), "latent_pred": r["ddp", "latent_pred"].double().numpy(),
-            "latent_pred_std": std.double().numpy()}] * 2
+    latents = {k: r["ddp", k].double().numpy() for k in ("latent_real", "latent_pred", "latent_pred_std")}
+    eps = [latents] * 2
     det.calibrate(eps)
     assert len(det.calibration()["scale"]) == std.shape[-1] and det.tau > 0
     out = det(r.select(("ddp", "latent_real"), ("ddp", "latent_pred"), ("ddp", "latent_pred_std"), "chunk_index"))

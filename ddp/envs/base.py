@@ -285,7 +285,8 @@ class PointCloudEnv(EpisodeSeeds, EnvBase):
     def shift_end_effector(self, delta, *, safe_lift: float = 0.0, settle_steps: int | None = None) -> np.ndarray:
         """Not supported by this env (no tracking): an adapter with an end-effector overrides it."""
         raise DDPError(
-            f"the {self.env_name} has no end-effector shift; use a controller without a tracker (controller.tracker: null)"
+            f"the {self.env_name} has no end-effector shift; "
+            "use a controller without a tracker (controller.tracker: null)"
         )
 
     def close(self, *, raise_if_closed: bool = True) -> None:
