@@ -1,4 +1,4 @@
-"""The ``ddp`` command line: ``ddp list | recipe | summary | train | bench | demos | eval | detect | run``."""
+"""The ``ddp`` command line: ``ddp list | recipe | summary | train | bench | demos | eval | detect | suite | run``."""
 
 from __future__ import annotations
 
@@ -190,6 +190,31 @@ def cmd_detect(args) -> int:
     return 0
 
 
+def cmd_suite(args) -> int:
+    from ddp.suite import load_suite, run_suite, write_suite_report
+    from ddp.suite.store import ResultStore
+
+    _at_least_one(workers=args.workers, threads=args.threads)
+    suite = load_suite(args.suite)
+    if args.dry_run:
+        for run in suite.runs:
+            protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
+            print(f"{run.run_id}: {run.recipe['name']}, protocols {protocols}, -> {run.recipe['train']['output_dir']}")
+        print(f"{len(suite.runs)} runs; results in {suite.results_dir}")
+        return 0
+    if args.report:
+        done = ResultStore(suite.results_dir).all(suite.runs)
+    else:
+        done = run_suite(suite, workers=args.workers, threads=args.threads, progress=not args.quiet)
+    results = [done[r.run_id] for r in suite.runs if r.run_id in done]
+    if not results:
+        raise DDPError(f"no finished runs of suite {suite.name!r} in {suite.results_dir} yet")
+    paths = write_suite_report(results, suite.results_dir, f"suite {suite.name} ({len(results)}/{len(suite.runs)} runs)")
+    print(paths[0].read_text(), end="")
+    print(f"wrote {', '.join(str(p) for p in paths)}")
+    return 0
+
+
 def cmd_run(args) -> int:
     from pathlib import Path
 
@@ -328,6 +353,15 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--output-dir", help="default: <checkpoint dir>/detect")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_detect)
+
+    p = sub.add_parser("suite", help="train and evaluate tasks x methods x seeds, resumable, aggregated", description="Expand a suite file (tasks x methods x seeds; see ddp/suite/spec.py) into runs, train and evaluate each one (skipping those whose result is already stored under results/suites/<suite>/), then write the paper's Table 1 layout (mean ± std over seeds) as table.md / .json / .csv / .png. Not to be confused with torch's DistributedDataParallel: DDP here is the Dream Diffusion Policy.")
+    p.add_argument("suite", help="path to a suite YAML file (e.g. suites/synthetic_smoke.yaml)")
+    p.add_argument("--workers", type=int, default=1, help="runs at once, each in its own process (default 1: sequential in this process)")
+    p.add_argument("--threads", type=int, help="torch threads per run (default: all cores / workers)")
+    p.add_argument("--report", action="store_true", help="only aggregate the stored results (run nothing)")
+    p.add_argument("--dry-run", action="store_true", help="list the runs and exit")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_suite)
 
     p = sub.add_parser("run", help="train then evaluate one or more recipes", description="Train each recipe (resuming if a checkpoint exists) and evaluate it; print one table for all.")
     p.add_argument("recipes", nargs="+", help="recipes to run in turn (e.g. DDP and its DP3 baseline)")

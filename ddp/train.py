@@ -195,7 +195,7 @@ class Trainer:
         logger = self._logger()
         loss_fn = torch.compile(model.loss) if cfg.compile else model.loss
         sums = {"loss": 0.0, "loss_bc": 0.0, "loss_wm": 0.0, "wm_error": 0.0}
-        count, last_means = 0, dict(sums)
+        count, last_means = 0, {k: float("nan") for k in sums}  # no step in this call (a finished run resumed)
         t0, samples = time.perf_counter(), 0
         bar = tqdm(total=total, initial=step, disable=not self.progress, desc=exp.recipe.name, unit="step")
 

@@ -1,0 +1,168 @@
+"""Aggregating a suite's results: the paper's Table 1 layout with the variance over seeds.
+
+Rows are method x protocol (the paper's conditions: ``id``, ``ood_base``, ``ood_tracking``,
+``ood_ddp`` with automatic detection, ``ood_ddp_oracle``, ``imagination_*``), columns are the tasks
+and one average per benchmark. A cell is the mean success rate over seeds +/- its standard deviation
+(sample std, ddof 1) with the seeds and episodes behind it; with a single seed it is the rate with
+its 95 % Wilson interval instead. A benchmark average is the mean over its tasks, and its std is
+that of the per-seed averages over tasks (seeds every task of the benchmark has).
+:func:`write_suite_report` writes ``table.md``, ``table.json``, ``table.csv`` and ``table.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ddp import results_json
+
+__all__ = ["aggregate", "wilson", "write_suite_report", "format_cell"]
+
+
+def wilson(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a binomial proportion."""
+    if n == 0:
+        return (float("nan"), float("nan"))
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def _cell(rates: list[float], successes: int, episodes: int, seeds: list[int]) -> dict:
+    cell = {"mean": float(np.mean(rates)), "seeds": seeds, "episodes": episodes, "successes": successes,
+            "per_seed": rates}
+    if len(rates) > 1:
+        cell["std"] = float(np.std(rates, ddof=1))
+    else:
+        cell["wilson95"] = list(wilson(successes, episodes))
+    return cell
+
+
+def aggregate(results: list[dict]) -> dict:
+    """``{"rows": [(method, protocol)], "tasks": [...], "benchmarks": {name: [tasks]}, "cells": {...}}``."""
+    tasks = list(dict.fromkeys(r["task"] for r in results))
+    methods = list(dict.fromkeys(r["method"] for r in results))
+    benchmarks: dict[str, list[str]] = {}
+    for r in results:
+        benchmarks.setdefault(r.get("benchmark", "all"), [])
+        if r["task"] not in benchmarks[r.get("benchmark", "all")]:
+            benchmarks[r.get("benchmark", "all")].append(r["task"])
+    rows, cells = [], {}
+    for m in methods:
+        protocols = list(dict.fromkeys(p for r in results if r["method"] == m for p in r["protocols"]))
+        for p in protocols:
+            rows.append((m, p))
+            per_task_seed: dict[str, dict[int, float]] = {}
+            for t in tasks:
+                runs = sorted((r for r in results if r["method"] == m and r["task"] == t and p in r["protocols"]),
+                              key=lambda r: r["seed"])
+                if not runs:
+                    continue
+                rates = [r["protocols"][p]["success_rate"] for r in runs]
+                cells[f"{m}|{p}|{t}"] = _cell(rates, sum(r["protocols"][p]["successes"] for r in runs),
+                                              sum(r["protocols"][p]["episodes"] for r in runs),
+                                              [r["seed"] for r in runs])
+                per_task_seed[t] = {r["seed"]: r["protocols"][p]["success_rate"] for r in runs}
+            for bench, names in benchmarks.items():
+                have = [t for t in names if t in per_task_seed]
+                if not have:
+                    continue
+                seeds = sorted(set.intersection(*(set(per_task_seed[t]) for t in have)))
+                per_seed = [float(np.mean([per_task_seed[t][s] for t in have])) for s in seeds]
+                task_means = [float(np.mean(list(per_task_seed[t].values()))) for t in have]
+                cell = {"mean": float(np.mean(task_means)), "tasks": have, "seeds": seeds, "per_seed": per_seed}
+                if len(per_seed) > 1:
+                    cell["std"] = float(np.std(per_seed, ddof=1))
+                cells[f"{m}|{p}|avg:{bench}"] = cell
+    return {"rows": rows, "tasks": tasks, "benchmarks": benchmarks, "cells": cells}
+
+
+def format_cell(cell: dict | None) -> str:
+    if cell is None:
+        return "-"
+    text = f"{100 * cell['mean']:.0f}"
+    if "std" in cell:
+        text += f" ± {100 * cell['std']:.0f}"
+    elif "wilson95" in cell:
+        lo, hi = cell["wilson95"]
+        text += f" [{100 * lo:.0f}, {100 * hi:.0f}]"
+    if "episodes" in cell:
+        text += f" (n={cell['episodes']})"
+    return text
+
+
+def _columns(table: dict) -> list[str]:
+    return [*table["tasks"], *(f"avg:{b}" for b in table["benchmarks"])]
+
+
+def markdown(table: dict, title: str) -> str:
+    cols = _columns(table)
+    lines = [f"{title}: success rate in %, mean ± std over seeds (one seed: [95 % Wilson interval]); "
+             "n = episodes over all seeds", "",
+             "| method | protocol | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
+    for m, p in table["rows"]:
+        cells = [format_cell(table["cells"].get(f"{m}|{p}|{c}")) for c in cols]
+        lines.append(f"| {m} | {p} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(table: dict, path: Path, title: str) -> None:
+    """Per-task bars (one group per task, one bar per method x protocol) with error bars."""
+    from ddp.plots import _pyplot
+
+    plt = _pyplot()
+    tasks, rows = table["tasks"], table["rows"]
+    width = 0.8 / max(1, len(rows))
+    fig, ax = plt.subplots(figsize=(2 + 1.2 * len(tasks) * max(1, len(rows)) / 3, 3.6))
+    for i, (m, p) in enumerate(rows):
+        means, errs = [], [[], []]
+        for t in tasks:
+            c = table["cells"].get(f"{m}|{p}|{t}")
+            mean = 100 * c["mean"] if c else float("nan")
+            means.append(mean)
+            if c and "std" in c:
+                errs[0].append(100 * c["std"]), errs[1].append(100 * c["std"])
+            elif c and "wilson95" in c:
+                errs[0].append(mean - 100 * c["wilson95"][0]), errs[1].append(100 * c["wilson95"][1] - mean)
+            else:
+                errs[0].append(0.0), errs[1].append(0.0)
+        xs = np.arange(len(tasks)) + (i - (len(rows) - 1) / 2) * width
+        ax.bar(xs, means, width, yerr=errs, capsize=2, label=f"{m} / {p}")
+    ax.set_xticks(np.arange(len(tasks)), tasks, rotation=30, ha="right")
+    ax.set_ylim(0, 105)
+    ax.set_ylabel("success rate (%)")
+    ax.set_title(title)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def write_suite_report(results: list[dict], out_dir: str | Path, title: str) -> list[Path]:
+    """table.md, table.json, table.csv and table.png under ``out_dir``; returns their paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    table = aggregate(results)
+    (out / "table.md").write_text(markdown(table, title))
+    (out / "table.json").write_text(results_json.dumps({**table, "rows": [list(r) for r in table["rows"]]}))
+    cols = _columns(table)
+    with open(out / "table.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["method", "protocol", *(f"{c}_{k}" for c in cols for k in ("mean", "std"))])
+        for m, p in table["rows"]:
+            row = [m, p]
+            for c in cols:
+                cell = table["cells"].get(f"{m}|{p}|{c}")
+                row += ["" if cell is None else cell["mean"], "" if cell is None else cell.get("std", "")]
+            w.writerow(row)
+    paths = [out / "table.md", out / "table.json", out / "table.csv"]
+    try:
+        plot(table, out / "table.png", title)
+        paths.append(out / "table.png")
+    except ImportError:
+        pass
+    return paths

@@ -1,0 +1,113 @@
+"""Running a suite's runs: one function per run, and the executors that call it.
+
+:func:`execute_run` trains a run's recipe (resuming its own checkpoint if one is there), evaluates
+it and returns a small result (success and detection summary per protocol, wall times); its
+stdout / stderr go to ``<run dir>/log.txt``. :func:`run_suite` skips the runs the store already holds,
+calls ``execute_run`` for the rest through the chosen executor and stores each result as soon as
+it arrives, printing one line per run started and finished:
+
+* ``sequential`` (default): one run after another in this process;
+* ``pool``: ``workers`` processes (``concurrent.futures`` with the spawn start method), each pinned
+  to ``cpu_count // workers`` torch threads.
+
+A run is a pure function of its recipe and seed, so both executors give the same results (tested
+with one thread per run).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from pathlib import Path
+
+from ddp.suite.spec import RunSpec, SuiteSpec
+from ddp.suite.store import ResultStore
+
+__all__ = ["execute_run", "run_suite"]
+
+
+def _summary(protocol: dict) -> dict:
+    out = {k: protocol[k] for k in ("success_rate", "successes", "episodes", "seconds", "tau", "alpha")
+           if k in protocol}
+    if "detection" in protocol:
+        out["detection"] = {k: v for k, v in protocol["detection"].items() if k != "per_episode"}
+    return out
+
+
+def execute_run(run: RunSpec, threads: int | None = None) -> dict:
+    """Train and evaluate one run; its console output goes to its log file. Returns its result."""
+    import torch
+
+    from ddp.experiment import build
+
+    if threads:
+        torch.set_num_threads(threads)
+    run_dir = Path(run.recipe["train"]["output_dir"])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with open(run_dir / "log.txt", "a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+        print(f"== {run.run_id} started (threads {torch.get_num_threads()})", flush=True)
+        exp = build(run.recipe)
+        trained = exp.train(resume=True, progress=False)
+        exp.load_checkpoint(trained.checkpoint)
+        report = exp.evaluate(list(run.protocols) if run.protocols else None, episodes=run.episodes,
+                              progress=False)
+        print(f"== {run.run_id} finished", flush=True)
+    return {
+        "run_id": run.run_id, "suite": run.suite, "task": run.task, "method": run.method, "seed": run.seed,
+        "benchmark": run.benchmark,
+        "train": {"steps": trained.steps, "seconds": trained.seconds, "loss": trained.loss},
+        "episodes": report["episodes"],
+        "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
+        "wall_seconds": time.perf_counter() - t0,
+    }
+
+
+def _fmt(seconds: float) -> str:
+    m, s = divmod(int(round(seconds)), 60)
+    return f"{m} min {s:02d} s" if m else f"{s} s"
+
+
+def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None, progress: bool = True,
+              echo=print) -> dict[str, dict]:
+    """Run what the store does not hold yet; return run_id -> result for every finished run."""
+    from tqdm import tqdm
+
+    store = ResultStore(suite.results_dir)
+    done = store.all(suite.runs)
+    todo = [r for r in suite.runs if r.run_id not in done]
+    echo(f"suite {suite.name}: {len(suite.runs)} runs, {len(done)} already in {suite.results_dir}, "
+         f"{len(todo)} to run ({'sequential' if workers == 1 else f'{workers} worker processes'})")
+    if not todo:
+        return done
+    bar = tqdm(total=len(suite.runs), initial=len(done), desc=f"suite {suite.name}", unit="run", disable=not progress)
+
+    def finished(run: RunSpec, result: dict) -> None:
+        store.save(run, result)
+        done[run.run_id] = result
+        rates = ", ".join(f"{p} {100 * v['success_rate']:.0f} %" for p, v in result["protocols"].items())
+        bar.write(f"finished {run.run_id} in {_fmt(result['wall_seconds'])}: {rates}") if progress else \
+            echo(f"finished {run.run_id} in {_fmt(result['wall_seconds'])}: {rates}")
+        bar.update(1)
+
+    try:
+        if workers == 1:
+            for run in todo:
+                echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
+                finished(run, execute_run(run, threads))
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            per = threads or max(1, (os.cpu_count() or 1) // workers)
+            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+                futures = {}
+                for run in todo:
+                    echo(f"queued {run.run_id} ({per} threads; log: {run.recipe['train']['output_dir']}/log.txt)")
+                    futures[pool.submit(execute_run, run, per)] = run
+                for fut in as_completed(futures):
+                    finished(futures[fut], fut.result())
+    finally:
+        bar.close()
+    return done

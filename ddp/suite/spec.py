@@ -1,0 +1,176 @@
+"""A suite file and the runs it expands into: tasks x methods x seeds, each a full recipe.
+
+```yaml
+name: metaworld_cpu
+tasks:                       # label -> a recipe, or {recipe: PATH, set: [KEY=VALUE, ...], benchmark: NAME}
+  drawer-open: recipes/metaworld/quickstart_ddp.yaml
+  button-press: {recipe: recipes/metaworld/quickstart_ddp.yaml, set: [env.task=button-press]}
+methods:                     # label -> {overlay: PATH, set: [...], protocols: [...]}; {} = the task recipe
+  ddp: {}
+  dp3: {overlay: recipes/methods/dp3.yaml, protocols: [id, ood_base, ood_tracking]}
+seeds: [0, 1]
+protocols: [id, ood_tracking, ood_ddp]   # default for methods without their own (else each recipe's)
+episodes: 20                 # per protocol (else each recipe's eval.episodes)
+set: [train.max_steps=3000]  # applied to every run, after the task's and the method's
+```
+
+An overlay's keys are merged onto the task's recipe (an overlay's own ``base:`` and ``name:``
+are ignored), so ``recipes/methods/dp3.yaml`` turns any task recipe into its DP3 baseline.
+Each run gets ``name: <suite>_<task>_<method>_s<seed>``, ``seed``, and its own output dir
+``runs/suites/<suite>/<task>__<method>__seed<seed>``. Paths in the suite file are relative to the
+working directory (the repository root).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ddp.errors import RecipeError
+
+__all__ = ["RunSpec", "SuiteSpec", "load_suite"]
+
+KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "output_dir", "results_dir"}
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One training + evaluation run of a suite: everything a worker needs (picklable)."""
+
+    suite: str
+    task: str
+    method: str
+    seed: int
+    benchmark: str
+    recipe: dict  # the full recipe (bases merged, overlay and overrides applied)
+    protocols: tuple[str, ...] | None
+    episodes: int | None
+
+    @property
+    def run_id(self) -> str:
+        return f"{self.task}__{self.method}__seed{self.seed}"
+
+    @property
+    def recipe_hash(self) -> str:
+        """What the run is: a changed recipe, protocol list or episode count is another run."""
+        data = {"recipe": self.recipe, "protocols": self.protocols, "episodes": self.episodes}
+        return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+@dataclass
+class SuiteSpec:
+    name: str
+    runs: list[RunSpec]
+    seeds: list[int]
+    tasks: dict[str, str]  # label -> benchmark
+    methods: list[str]
+    results_dir: Path
+    source: str = ""
+    protocols: dict[str, list[str] | None] = field(default_factory=dict)
+
+
+def _strings(value, *, key: str, source: str) -> list[str]:
+    if value is None:
+        return []
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise RecipeError(f"must be a list of strings, got {value!r}", source=source, key=key)
+    return list(value)
+
+
+def _overlay(path: str, *, key: str, source: str) -> dict:
+    from ddp.recipe import _read_yaml
+
+    if not Path(path).is_file():
+        raise RecipeError(f"overlay file not found: {path}", source=source, key=key)
+    data = _read_yaml(Path(path), referenced_by=source)
+    data.pop("base", None)
+    data.pop("name", None)
+    return data
+
+
+def load_suite(path: str | Path) -> SuiteSpec:
+    """Read and expand a suite file; one-line ``RecipeError`` naming the offending key."""
+    from ddp.errors import suggest
+    from ddp.protocols.base import check_protocols
+    from ddp.experiment import blame_override
+    from ddp.recipe import _read_yaml, apply_overrides, load_yaml_tree, merge
+    from ddp.schema import validate
+
+    source = str(path)
+    if not Path(path).is_file():
+        raise RecipeError(f"suite file not found: {path}", source=source)
+    data = _read_yaml(Path(path))
+    unknown = sorted(set(data) - KNOWN)
+    if unknown:
+        raise RecipeError(f"unknown key '{unknown[0]}'{suggest(unknown[0], KNOWN)} (known: {', '.join(sorted(KNOWN))})",
+                          source=source, key=unknown[0])
+    name = data.get("name") or Path(path).stem
+    if not isinstance(name, str) or not name.replace("-", "").replace("_", "").isalnum():
+        raise RecipeError(f"must be a name of letters, digits, '-' and '_', got {name!r}", source=source, key="name")
+    tasks, methods = data.get("tasks"), data.get("methods") or {"default": {}}
+    if not isinstance(tasks, dict) or not tasks:
+        raise RecipeError("must map task labels to recipes", source=source, key="tasks")
+    if not isinstance(methods, dict):
+        raise RecipeError("must map method labels to {overlay, set, protocols}", source=source, key="methods")
+    seeds = data.get("seeds", [0])
+    if not isinstance(seeds, list) or not seeds or not all(isinstance(s, int) and not isinstance(s, bool)
+                                                           for s in seeds):
+        raise RecipeError(f"must be a non-empty list of integers, got {seeds!r}", source=source, key="seeds")
+    if len(set(seeds)) != len(seeds):
+        raise RecipeError(f"repeats a seed: {seeds}", source=source, key="seeds")
+    episodes = data.get("episodes")
+    if episodes is not None and (isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1):
+        raise RecipeError(f"must be a whole number >= 1, got {episodes!r}", source=source, key="episodes")
+    default_protocols = _strings(data.get("protocols"), key="protocols", source=source) or None
+    if default_protocols:
+        check_protocols(default_protocols, source=source, key="protocols")
+    common = _strings(data.get("set"), key="set", source=source)
+
+    runs, task_bench, method_protocols = [], {}, {}
+    for label, task in tasks.items():
+        if isinstance(task, str):
+            task = {"recipe": task}
+        if not isinstance(task, dict) or not isinstance(task.get("recipe"), str):
+            raise RecipeError("needs a recipe path", source=source, key=f"tasks.{label}")
+        extra = sorted(set(task) - {"recipe", "set", "benchmark"})
+        if extra:
+            raise RecipeError(f"unknown key '{extra[0]}' (known: recipe, set, benchmark)", source=source,
+                              key=f"tasks.{label}")
+        if not Path(task["recipe"]).is_file():
+            raise RecipeError(f"recipe file not found: {task['recipe']}", source=source, key=f"tasks.{label}.recipe")
+        base = load_yaml_tree(task["recipe"])
+        task_set = _strings(task.get("set"), key=f"tasks.{label}.set", source=source)
+        task_bench[label] = str(task.get("benchmark", name))
+        for m_label, method in methods.items():
+            method = method or {}
+            if not isinstance(method, dict):
+                raise RecipeError("must be a mapping {overlay, set, protocols}", source=source,
+                                  key=f"methods.{m_label}")
+            extra = sorted(set(method) - {"overlay", "set", "protocols"})
+            if extra:
+                raise RecipeError(f"unknown key '{extra[0]}' (known: overlay, set, protocols)", source=source,
+                                  key=f"methods.{m_label}")
+            recipe = base
+            if method.get("overlay"):
+                recipe = merge(recipe, _overlay(method["overlay"], key=f"methods.{m_label}.overlay", source=source))
+            protocols = _strings(method.get("protocols"), key=f"methods.{m_label}.protocols", source=source)
+            if protocols:
+                check_protocols(protocols, source=source, key=f"methods.{m_label}.protocols")
+            method_protocols[m_label] = protocols or default_protocols
+            overrides = task_set + _strings(method.get("set"), key=f"methods.{m_label}.set", source=source) + common
+            for seed in seeds:
+                run_dir = f"runs/suites/{name}/{label}__{m_label}__seed{seed}"
+                r = apply_overrides(recipe, overrides)
+                r = apply_overrides(r, [f"name={name}_{label}_{m_label}_s{seed}", f"seed={seed}"])
+                r = merge(r, {"train": {"output_dir": run_dir}, "eval": {"output_dir": f"{run_dir}/eval"}})
+                try:  # every run checked before any starts: a typo fails now, not hours in
+                    validate(r, f"{source} [{label} / {m_label}]", import_plugins=True)
+                except RecipeError as err:
+                    raise blame_override(err, overrides) from None
+                runs.append(RunSpec(name, label, m_label, seed, task_bench[label], r,
+                                    tuple(method_protocols[m_label]) if method_protocols[m_label] else None,
+                                    episodes))
+    results_dir = Path(data.get("results_dir") or f"results/suites/{name}")
+    return SuiteSpec(name, runs, list(seeds), task_bench, list(methods), results_dir, source, method_protocols)

@@ -1,0 +1,53 @@
+"""The results store of a suite: one JSON per finished run, written atomically; what makes a suite resumable.
+
+``results/suites/<suite>/<task>__<method>__seed<seed>.json`` holds a run's result once it has
+finished (success and detection per protocol, training and evaluation wall times). A suite restarted
+after an interruption skips every run whose file is there, parses, is complete and was made for the
+same recipe (its ``recipe_hash``); anything else (missing, half-written, corrupt, or from a recipe
+that has since changed) is run again.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ddp import results_json
+from ddp.atomic_file import atomic_write
+from ddp.suite.spec import RunSpec
+
+__all__ = ["ResultStore"]
+
+FORMAT = "ddp-suite-run"
+
+
+class ResultStore:
+    def __init__(self, directory: str | Path):
+        self.directory = Path(directory)
+
+    def path(self, run: RunSpec) -> Path:
+        return self.directory / f"{run.run_id}.json"
+
+    def load(self, run: RunSpec) -> dict | None:
+        """The stored result of ``run`` if it is complete and made for the run's current recipe, else None."""
+        path = self.path(run)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return None
+        ok = isinstance(data, dict) and data.get("format") == FORMAT and data.get("complete") is True
+        return data if ok and data.get("recipe_hash") == run.recipe_hash else None
+
+    def save(self, run: RunSpec, result: dict) -> Path:
+        data = {"format": FORMAT, "complete": True, "recipe_hash": run.recipe_hash, **result}
+        text = results_json.dumps(data)
+        return atomic_write(self.path(run), lambda f: f.write(text), binary=False)
+
+    def all(self, runs: list[RunSpec]) -> dict[str, dict]:
+        """run_id -> stored result, for the runs that have a valid one."""
+        out = {}
+        for run in runs:
+            data = self.load(run)
+            if data is not None:
+                out[run.run_id] = data
+        return out

@@ -1,0 +1,150 @@
+"""``ddp suite``: expansion, the resumable store, the executors, the aggregation."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+
+import pytest
+import yaml
+
+from conftest import TINY
+from ddp.errors import RecipeError
+from ddp.suite import ResultStore, aggregate, load_suite, run_suite, write_suite_report
+from ddp.suite.report import wilson
+
+
+@pytest.fixture
+def suite_file(tmp_path, monkeypatch):
+    """A tiny suite: 2 tasks x 2 methods (DDP, DP3 by overlay) x 2 seeds, 2 training steps, 1 short episode."""
+    monkeypatch.chdir(tmp_path)
+    recipe = copy.deepcopy(TINY)
+    recipe["env"].update(displacement_chunk=1, displacement_delta=[0.2, 0.0, 0.0])
+    recipe["train"].update(max_steps=2, epochs=1)
+    recipe["eval"] = {"episodes": 1, "max_steps": 16}
+    recipe["controller"] = {"detector": {"name": "oracle"}, "tracker": {"name": "oracle"},
+                            "recovery": {"name": "target_specific"}}
+    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(recipe))
+    (tmp_path / "dp3.yaml").write_text("base: ignored.yaml\nname: ignored\nworld_model: {enabled: false}\n")
+    suite = {
+        "name": "tiny_suite",
+        "tasks": {"near": "tiny.yaml", "far": {"recipe": "tiny.yaml", "set": ["env.displacement_delta=[0.3, 0, 0]"],
+                                              "benchmark": "synthetic"}},
+        "methods": {"ddp": {}, "dp3": {"overlay": "dp3.yaml", "protocols": ["id", "ood_tracking"]}},
+        "seeds": [0, 1],
+        "protocols": ["id", "ood_base"],
+        "set": ["train.lr=0.002"],
+    }
+    path = tmp_path / "suite.yaml"
+    path.write_text(yaml.safe_dump(suite, sort_keys=False))
+    return path
+
+
+def test_expansion(suite_file):
+    suite = load_suite(suite_file)
+    assert [r.run_id for r in suite.runs] == [
+        f"{t}__{m}__seed{s}" for t in ("near", "far") for m in ("ddp", "dp3") for s in (0, 1)
+    ]
+    run = suite.runs[0]
+    assert run.recipe["name"] == "tiny_suite_near_ddp_s0" and run.recipe["seed"] == 0
+    assert run.recipe["train"]["output_dir"] == "runs/suites/tiny_suite/near__ddp__seed0"
+    assert run.recipe["train"]["lr"] == 0.002 and run.protocols == ("id", "ood_base")
+    dp3 = next(r for r in suite.runs if r.method == "dp3")
+    assert dp3.recipe["world_model"]["enabled"] is False and dp3.protocols == ("id", "ood_tracking")
+    assert dp3.recipe["world_model"]["denoiser"] == TINY["world_model"]["denoiser"]  # merged, the base ignored
+    far = next(r for r in suite.runs if r.task == "far")
+    assert far.recipe["env"]["displacement_delta"] == [0.3, 0, 0] and far.benchmark == "synthetic"
+    assert run.benchmark == "tiny_suite"
+    assert len({r.recipe_hash for r in suite.runs}) == len(suite.runs)
+
+
+@pytest.mark.parametrize("edit, message", [
+    ({"taks": {}}, "unknown key 'taks'; did you mean 'tasks'"),
+    ({"seeds": [0, 0]}, "repeats a seed"),
+    ({"seeds": "0"}, "non-empty list of integers"),
+    ({"protocols": ["id", "odd"]}, "unknown protocol 'odd'"),
+    ({"set": ["train.lrr=1"]}, "train.lrr"),
+    ({"methods": {"x": {"overlay": "missing.yaml"}}}, "overlay file not found"),
+])
+def test_bad_suite_files_are_one_line(suite_file, edit, message):
+    data = yaml.safe_load(suite_file.read_text())
+    data.update(edit)
+    suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(RecipeError, match=message) as err:
+        load_suite(suite_file)
+    assert "\n" not in str(err.value)
+
+
+def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
+    import ddp.suite.runner as runner
+
+    suite = load_suite(suite_file)
+    calls = []
+    real = runner.execute_run
+    monkeypatch.setattr(runner, "execute_run", lambda run, threads=None: calls.append(run.run_id) or real(run, 1))
+    done = run_suite(suite, progress=False, echo=lambda *_: None)
+    assert sorted(done) == sorted(r.run_id for r in suite.runs) and len(calls) == 8
+    store = ResultStore(suite.results_dir)
+    first = store.load(suite.runs[0])
+    assert first["protocols"]["id"]["episodes"] == 1 and first["train"]["steps"] == 2
+    assert (suite_file.parent / "runs/suites/tiny_suite/near__ddp__seed0/log.txt").read_text().count("finished") == 1
+
+    # a finished run is not run again; a missing, half-written or stale result is
+    calls.clear()
+    store.path(suite.runs[1]).unlink()
+    store.path(suite.runs[2]).write_text(store.path(suite.runs[2]).read_text()[:40])
+    stale = json.loads(store.path(suite.runs[3]).read_text())
+    stale["recipe_hash"] = "0" * 16
+    store.path(suite.runs[3]).write_text(json.dumps(stale))
+    run_suite(suite, progress=False, echo=lambda *_: None)
+    assert calls == [suite.runs[i].run_id for i in (1, 2, 3)]
+
+    # a process pool gives the same results as the sequential run
+    monkeypatch.setattr(runner, "execute_run", real)
+    seq = ResultStore(suite.results_dir).all(suite.runs)
+    suite.results_dir = suite.results_dir.parent / "pool"
+    for r in suite.runs:  # fresh run dirs: nothing to resume
+        r.recipe["train"]["output_dir"] += "_pool"
+        r.recipe["eval"]["output_dir"] += "_pool"
+    pooled = run_suite(suite, workers=2, threads=1, progress=False, echo=lambda *_: None)
+    for i, run in enumerate(suite.runs):
+        a, b = seq[run.run_id], pooled[run.run_id]
+        if i not in (1, 2, 3):  # those resumed a finished training above: no loss measured (null)
+            assert a["train"]["loss"] == pytest.approx(b["train"]["loss"], rel=1e-6), run.run_id
+        else:
+            assert a["train"]["loss"] is None and a["train"]["steps"] == 2
+        assert {p: v["success_rate"] for p, v in a["protocols"].items()} == \
+            {p: v["success_rate"] for p, v in b["protocols"].items()}
+
+
+def _result(task, method, seed, rates, bench="mw", episodes=10):
+    return {"task": task, "method": method, "seed": seed, "benchmark": bench,
+            "protocols": {p: {"success_rate": r, "successes": round(r * episodes), "episodes": episodes}
+                          for p, r in rates.items()}}
+
+
+def test_aggregation_math(tmp_path):
+    results = [
+        _result("a", "ddp", 0, {"id": 1.0, "ood": 0.8}), _result("a", "ddp", 1, {"id": 0.9, "ood": 0.6}),
+        _result("b", "ddp", 0, {"id": 0.5, "ood": 0.2}), _result("b", "ddp", 1, {"id": 0.7, "ood": 0.4}),
+        _result("c", "ddp", 0, {"id": 0.3}, bench="other"),
+    ]
+    table = aggregate(results)
+    assert table["rows"] == [("ddp", "id"), ("ddp", "ood")]
+    assert table["benchmarks"] == {"mw": ["a", "b"], "other": ["c"]}
+    cell = table["cells"]["ddp|id|a"]
+    assert cell["mean"] == pytest.approx(0.95) and cell["std"] == pytest.approx(math.sqrt(0.005))
+    assert cell["episodes"] == 20 and cell["successes"] == 19
+    avg = table["cells"]["ddp|ood|avg:mw"]
+    assert avg["mean"] == pytest.approx(0.5) and avg["per_seed"] == pytest.approx([0.5, 0.5]) and avg["std"] == 0
+    one = table["cells"]["ddp|id|c"]
+    assert "std" not in one and one["wilson95"] == pytest.approx(list(wilson(3, 10)))
+    lo, hi = wilson(3, 10)
+    assert lo == pytest.approx(0.1078, abs=1e-4) and hi == pytest.approx(0.6032, abs=1e-4)  # textbook values
+    assert "ddp|ood|c" not in table["cells"]
+    paths = write_suite_report(results, tmp_path, "t")
+    md = (tmp_path / "table.md").read_text()
+    assert "| ddp | id | 95 ± 7 (n=20) | 60 ± 14 (n=20) | 30 [11, 60] (n=10) | 77 ± 4 | 30 |" in md
+    assert {p.name for p in paths} >= {"table.md", "table.json", "table.csv"}
+    assert (tmp_path / "table.csv").read_text().splitlines()[0].startswith("method,protocol,a_mean,a_std")
