@@ -205,7 +205,9 @@ def cmd_suite(args) -> int:
     if args.report:
         done = ResultStore(suite.results_dir).all(suite.runs)
     else:
-        done = run_suite(suite, workers=args.workers, threads=args.threads, progress=not args.quiet)
+        ray = (args.ray or True) if args.ray is not None else False
+        done = run_suite(suite, workers=args.workers, threads=args.threads, progress=not args.quiet, ray=ray,
+                         gpus_per_run=args.gpus_per_run)
     results = [done[r.run_id] for r in suite.runs if r.run_id in done]
     if not results:
         raise DDPError(f"no finished runs of suite {suite.name!r} in {suite.results_dir} yet")
@@ -358,6 +360,8 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("suite", help="path to a suite YAML file (e.g. suites/synthetic_smoke.yaml)")
     p.add_argument("--workers", type=int, default=1, help="runs at once, each in its own process (default 1: sequential in this process)")
     p.add_argument("--threads", type=int, help="torch threads per run (default: all cores / workers)")
+    p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS", help="run each run as a Ray task: on a local Ray started here (--ray) or a cluster (--ray ADDRESS, e.g. ray://head:10001 or auto); needs the ray extra")
+    p.add_argument("--gpus-per-run", type=float, default=0.0, help="with --ray: GPUs each run asks for (default 0)")
     p.add_argument("--report", action="store_true", help="only aggregate the stored results (run nothing)")
     p.add_argument("--dry-run", action="store_true", help="list the runs and exit")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

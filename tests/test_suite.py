@@ -117,6 +117,21 @@ def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
         assert {p: v["success_rate"] for p, v in a["protocols"].items()} == \
             {p: v["success_rate"] for p, v in b["protocols"].items()}
 
+    # and so does a local Ray (one CPU per run), on the first task
+    pytest.importorskip("ray")
+    ray_suite = copy.deepcopy(suite)
+    ray_suite.runs = [r for r in ray_suite.runs if r.task == "near"]
+    ray_suite.results_dir = suite.results_dir.parent / "ray"
+    for r in ray_suite.runs:
+        r.recipe["train"]["output_dir"] = r.recipe["train"]["output_dir"].replace("_pool", "_ray")
+        r.recipe["eval"]["output_dir"] = r.recipe["eval"]["output_dir"].replace("_pool", "_ray")
+    on_ray = run_suite(ray_suite, ray=True, threads=1, progress=False, echo=lambda *_: None)
+    for run in ray_suite.runs:
+        a, b = pooled[run.run_id], on_ray[run.run_id]
+        assert a["train"]["loss"] == pytest.approx(b["train"]["loss"], rel=1e-6), run.run_id
+        assert {p: v["success_rate"] for p, v in a["protocols"].items()} == \
+            {p: v["success_rate"] for p, v in b["protocols"].items()}
+
 
 def _result(task, method, seed, rates, bench="mw", episodes=10):
     return {"task": task, "method": method, "seed": seed, "benchmark": bench,

@@ -8,7 +8,11 @@ it arrives, printing one line per run started and finished:
 
 * ``sequential`` (default): one run after another in this process;
 * ``pool``: ``workers`` processes (``concurrent.futures`` with the spawn start method), each pinned
-  to ``cpu_count // workers`` torch threads.
+  to ``cpu_count // workers`` torch threads;
+* ``ray``: each run a Ray task asking for its threads as CPUs (and ``gpus_per_run`` GPUs), on a
+  local Ray started here (``ray=True``) or a cluster (``ray="ADDRESS"``); Ray schedules them on
+  the resources it has. Workers change to this working directory first: on a cluster every node
+  needs the repository (and its data) at the same path.
 
 A run is a pure function of its recipe and seed, so both executors give the same results (tested
 with one thread per run).
@@ -35,12 +39,14 @@ def _summary(protocol: dict) -> dict:
     return out
 
 
-def execute_run(run: RunSpec, threads: int | None = None) -> dict:
+def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None) -> dict:
     """Train and evaluate one run; its console output goes to its log file. Returns its result."""
     import torch
 
     from ddp.experiment import build
 
+    if cwd is not None:
+        os.chdir(cwd)
     if threads:
         torch.set_num_threads(threads)
     run_dir = Path(run.recipe["train"]["output_dir"])
@@ -70,15 +76,16 @@ def _fmt(seconds: float) -> str:
 
 
 def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None, progress: bool = True,
-              echo=print) -> dict[str, dict]:
+              echo=print, ray: bool | str = False, gpus_per_run: float = 0.0) -> dict[str, dict]:
     """Run what the store does not hold yet; return run_id -> result for every finished run."""
     from tqdm import tqdm
 
     store = ResultStore(suite.results_dir)
     done = store.all(suite.runs)
     todo = [r for r in suite.runs if r.run_id not in done]
+    how = "Ray tasks" if ray else ("sequential" if workers == 1 else f"{workers} worker processes")
     echo(f"suite {suite.name}: {len(suite.runs)} runs, {len(done)} already in {suite.results_dir}, "
-         f"{len(todo)} to run ({'sequential' if workers == 1 else f'{workers} worker processes'})")
+         f"{len(todo)} to run ({how})")
     if not todo:
         return done
     bar = tqdm(total=len(suite.runs), initial=len(done), desc=f"suite {suite.name}", unit="run", disable=not progress)
@@ -92,7 +99,9 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
         bar.update(1)
 
     try:
-        if workers == 1:
+        if ray:
+            _run_on_ray(todo, finished, ray=ray, threads=threads or 1, gpus=gpus_per_run, echo=echo)
+        elif workers == 1:
             for run in todo:
                 echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
                 finished(run, execute_run(run, threads))
@@ -111,3 +120,31 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
     finally:
         bar.close()
     return done
+
+
+def _run_on_ray(todo: list[RunSpec], finished, *, ray, threads: int, gpus: float, echo) -> None:
+    """Submit every run as a Ray task; store results in the order they finish."""
+    try:
+        import ray as ray_mod
+    except ImportError:
+        from ddp.errors import DDPError
+
+        raise DDPError('--ray needs Ray: pip install "dream-diffusion-policy[ray]"') from None
+    started_here = not ray_mod.is_initialized()
+    if started_here:
+        address = ray if isinstance(ray, str) else None
+        ray_mod.init(address=address, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+    try:
+        task = ray_mod.remote(num_cpus=threads, num_gpus=gpus, max_retries=0)(execute_run)
+        pending = {}
+        for run in todo:
+            echo(f"queued {run.run_id} ({threads} CPUs{f', {gpus:g} GPUs' if gpus else ''}; "
+                 f"log: {run.recipe['train']['output_dir']}/log.txt)")
+            pending[task.remote(run, threads, os.getcwd())] = run
+        while pending:
+            ready, _ = ray_mod.wait(list(pending), num_returns=1)
+            for ref in ready:
+                finished(pending.pop(ref), ray_mod.get(ref))
+    finally:
+        if started_here:
+            ray_mod.shutdown()
