@@ -59,6 +59,15 @@ def test_expansion(suite_file):
     assert len({r.recipe_hash for r in suite.runs}) == len(suite.runs)
 
 
+def test_task_protocols_keep_those_a_task_supports(suite_file):
+    data = yaml.safe_load(suite_file.read_text())
+    data["tasks"]["far"]["protocols"] = ["id"]
+    suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
+    suite = load_suite(suite_file)
+    assert {r.protocols for r in suite.runs if r.task == "far"} == {("id",)}
+    assert {r.protocols for r in suite.runs if r.task == "near" and r.method == "ddp"} == {("id", "ood_base")}
+
+
 @pytest.mark.parametrize("edit, message", [
     ({"taks": {}}, "unknown key 'taks'; did you mean 'tasks'"),
     ({"seeds": [0, 0]}, "repeats a seed"),
@@ -163,3 +172,12 @@ def test_aggregation_math(tmp_path):
     assert "| ddp | id | 95 ± 7 (n=20) | 60 ± 14 (n=20) | 30 [11, 60] (n=10) | 77 ± 4 | 30 |" in md
     assert {p.name for p in paths} >= {"table.md", "table.json", "table.csv"}
     assert (tmp_path / "table.csv").read_text().splitlines()[0].startswith("method,protocol,a_mean,a_std")
+
+
+@pytest.mark.parametrize("name", ["synthetic_smoke", "metaworld_cpu", "adroit_cpu", "franka_cpu", "table1"])
+def test_shipped_suites_expand(name, monkeypatch):
+    from conftest import ROOT
+
+    monkeypatch.chdir(ROOT)  # suite paths are relative to the repository root
+    suite = load_suite(ROOT / "suites" / f"{name}.yaml")
+    assert suite.name == name and len(suite.runs) == len(suite.tasks) * len(suite.methods) * len(suite.seeds)

@@ -2,7 +2,7 @@
 
 ```yaml
 name: metaworld_cpu
-tasks:                       # label -> a recipe, or {recipe: PATH, set: [KEY=VALUE, ...], benchmark: NAME}
+tasks:                       # label -> a recipe, or {recipe: PATH, set: [...], benchmark: NAME, protocols: [...]}
   drawer-open: recipes/metaworld/quickstart_ddp.yaml
   button-press: {recipe: recipes/metaworld/quickstart_ddp.yaml, set: [env.task=button-press]}
 methods:                     # label -> {overlay: PATH, set: [...], protocols: [...]}; {} = the task recipe
@@ -14,7 +14,8 @@ episodes: 20                 # per protocol (else each recipe's eval.episodes)
 set: [train.max_steps=3000]  # applied to every run, after the task's and the method's
 ```
 
-An overlay's keys are merged onto the task's recipe (an overlay's own ``base:`` and ``name:``
+A task's ``protocols`` (e.g. no displacement protocols on Adroit) keep, of each method's protocols, those
+it lists. An overlay's keys are merged onto the task's recipe (an overlay's own ``base:`` and ``name:``
 are ignored), so ``recipes/methods/dp3.yaml`` turns any task recipe into its DP3 baseline.
 Each run gets ``name: <suite>_<task>_<method>_s<seed>``, ``seed``, and its own output dir
 ``runs/suites/<suite>/<task>__<method>__seed<seed>``. Paths in the suite file are relative to the
@@ -134,10 +135,13 @@ def load_suite(path: str | Path) -> SuiteSpec:
             task = {"recipe": task}
         if not isinstance(task, dict) or not isinstance(task.get("recipe"), str):
             raise RecipeError("needs a recipe path", source=source, key=f"tasks.{label}")
-        extra = sorted(set(task) - {"recipe", "set", "benchmark"})
+        extra = sorted(set(task) - {"recipe", "set", "benchmark", "protocols"})
         if extra:
-            raise RecipeError(f"unknown key '{extra[0]}' (known: recipe, set, benchmark)", source=source,
+            raise RecipeError(f"unknown key '{extra[0]}' (known: recipe, set, benchmark, protocols)", source=source,
                               key=f"tasks.{label}")
+        task_protocols = _strings(task.get("protocols"), key=f"tasks.{label}.protocols", source=source)
+        if task_protocols:
+            check_protocols(task_protocols, source=source, key=f"tasks.{label}.protocols")
         if not Path(task["recipe"]).is_file():
             raise RecipeError(f"recipe file not found: {task['recipe']}", source=source, key=f"tasks.{label}.recipe")
         base = load_yaml_tree(task["recipe"])
@@ -160,6 +164,12 @@ def load_suite(path: str | Path) -> SuiteSpec:
                 check_protocols(protocols, source=source, key=f"methods.{m_label}.protocols")
             method_protocols[m_label] = protocols or default_protocols
             overrides = task_set + _strings(method.get("set"), key=f"methods.{m_label}.set", source=source) + common
+            chosen = method_protocols[m_label]
+            if task_protocols:
+                chosen = [p for p in (chosen or task_protocols) if p in task_protocols]
+                if not chosen:
+                    raise RecipeError(f"no protocol of method {m_label!r} is among the task's {task_protocols}",
+                                      source=source, key=f"tasks.{label}.protocols")
             for seed in seeds:
                 run_dir = f"runs/suites/{name}/{label}__{m_label}__seed{seed}"
                 r = apply_overrides(recipe, overrides)
@@ -170,7 +180,6 @@ def load_suite(path: str | Path) -> SuiteSpec:
                 except RecipeError as err:
                     raise blame_override(err, overrides) from None
                 runs.append(RunSpec(name, label, m_label, seed, task_bench[label], r,
-                                    tuple(method_protocols[m_label]) if method_protocols[m_label] else None,
-                                    episodes))
+                                    tuple(chosen) if chosen else None, episodes))
     results_dir = Path(data.get("results_dir") or f"results/suites/{name}")
     return SuiteSpec(name, runs, list(seeds), task_bench, list(methods), results_dir, source, method_protocols)
