@@ -174,7 +174,7 @@ def test_aggregation_math(tmp_path):
     assert (tmp_path / "table.csv").read_text().splitlines()[0].startswith("method,protocol,a_mean,a_std")
 
 
-@pytest.mark.parametrize("name", ["synthetic_smoke", "metaworld_cpu", "adroit_cpu", "franka_cpu", "table1"])
+@pytest.mark.parametrize("name", ["metaworld_smoke", "metaworld_cpu", "adroit_cpu", "franka_cpu", "table1"])
 def test_shipped_suites_expand(name, monkeypatch):
     from conftest import ROOT
 
