@@ -77,9 +77,15 @@ def cmd_summary(args) -> int:
 def cmd_train(args) -> int:
     from ddp.experiment import build
 
+    from ddp.distributed import env_ranks
+
     exp = build(args.recipe, args.overrides)
     res = exp.train(output_dir=args.output_dir, resume=not args.no_resume, progress=not args.quiet)
+    ranks = env_ranks()
+    if not ranks.main:  # under torchrun only rank 0 reports
+        return 0
     print(
+        (f"{ranks.world} processes (torch DistributedDataParallel): " if ranks.enabled else "") +
         f"trained {res.steps} steps ({res.epochs} epochs) in {res.seconds:.1f} s, {res.samples_per_second:.0f} samples/s; "
         f"loss {res.loss:.4f} (bc {res.loss_bc:.4f}, lambda*wm {res.loss_wm:.4f}, L_WM {res.wm_error:.4f}); "
         f"checkpoint {res.checkpoint}"
@@ -298,7 +304,7 @@ def make_parser() -> argparse.ArgumentParser:
     _add_recipe_args(p)
     p.set_defaults(func=cmd_summary)
 
-    p = sub.add_parser("train", help="train a recipe", description="Train a recipe's model; resumes from <output_dir>/last.pt unless --no-resume.")
+    p = sub.add_parser("train", help="train a recipe", description="Train a recipe's model; resumes from <output_dir>/last.pt unless --no-resume. Several processes (CPU or one GPU each): torchrun --nproc-per-node K -m ddp train RECIPE, data-parallel with torch's DistributedDataParallel (not the Dream Diffusion Policy that DDP names elsewhere here); train.micro_batches must be a multiple of K, and the weights equal a 1-process run with the same micro_batches.")
     _add_recipe_args(p)
     p.add_argument("--output-dir", help="where checkpoints and logs go (default: the recipe's train.output_dir)")
     p.add_argument("--no-resume", action="store_true", help="start from scratch even if a checkpoint exists")

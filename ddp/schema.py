@@ -107,10 +107,16 @@ class TrainConfig:
     logger: Literal["csv", "tensorboard", "wandb", "none"] = "csv"  # torchrl.record.loggers backends
     autocast_bf16: bool = False  # bf16 autocast of the forward passes (CUDA or CPU)
     compile: bool = False  # torch.compile the loss computation
+    # the global batch is split into this many equal micro-batches, each with its own noise stream
+    # (gradient accumulation); under torchrun the ranks share them out (ddp.distributed)
+    micro_batches: int = 1
 
     def __post_init__(self):
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1; got {self.batch_size}")
+        if self.micro_batches < 1 or self.batch_size % self.micro_batches:
+            raise ValueError(f"micro_batches must be >= 1 and divide batch_size ({self.batch_size}); "
+                             f"got {self.micro_batches}")
         if self.lr <= 0:
             raise ValueError(f"lr must be > 0; got {self.lr}")
         if self.epochs < 1:

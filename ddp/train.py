@@ -8,6 +8,7 @@ noise comes from a generator whose state is checkpointed.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ from tqdm.auto import tqdm
 
 from ddp.checkpoint import load_checkpoint, save_checkpoint, stored_recipe
 from ddp.data.sequence import SequenceDataset
+from ddp.distributed import env_ranks, process_group
 from ddp.errors import CheckpointError, RecipeError
 from ddp.models.ema import EMA
 from ddp.preemption import interruption, signals_deferred, stop_signals
@@ -110,6 +112,20 @@ class TrainResult:
     checkpoint: Path
 
 
+class _Objective(torch.nn.Module):
+    """The model's training objective as a module (what DistributedDataParallel wraps):
+    ``(batch, generator) -> (sum of the loss_* terms, the loss TensorDict)``."""
+
+    def __init__(self, model, loss_fn):
+        super().__init__()
+        self.model = model
+        self.loss_fn = loss_fn
+
+    def forward(self, batch, generator):
+        losses = self.loss_fn(batch, generator=generator)
+        return sum(losses[k] for k in losses.keys() if k.startswith("loss_")), losses
+
+
 class Trainer:
     """Trains an experiment's model; ``fit()`` resumes from ``<output_dir>/last.pt`` if present."""
 
@@ -120,6 +136,9 @@ class Trainer:
         self.output_dir = Path(output_dir or cfg.output_dir.format(name=experiment.recipe.name))
         self.progress = progress
         self.device = resolve_device(cfg.device, source=experiment.source)
+        ranks = env_ranks()
+        if ranks.enabled and self.device.type == "cuda":  # one GPU per rank under torchrun
+            self.device = torch.device("cuda", ranks.local_rank)
         if cfg.num_threads:
             torch.set_num_threads(cfg.num_threads)
 
@@ -131,11 +150,20 @@ class Trainer:
         return torch.randperm(n, generator=g)
 
     def fit(self, resume: bool = True) -> TrainResult:
-        """Train (resuming from ``<output_dir>/last.pt`` when ``resume``), holding the directory's lock."""
-        # SIGTERM / SIGHUP (a scheduler's preemption) end training like Ctrl-C: with a checkpoint
-        with RunLock(self.output_dir), stop_signals():
-            remove_leftovers(self.output_dir, LAST)  # temporary files of writes a kill interrupted
-            return self._fit(resume)
+        """Train (resuming from ``<output_dir>/last.pt`` when ``resume``), holding the directory's lock.
+
+        Under ``torchrun`` every rank trains its share of each batch (``ddp.distributed``); rank 0
+        holds the lock, checkpoints, logs and shows progress.
+        """
+        with process_group(self.device) as ranks:
+            self.ranks = ranks
+            lock = RunLock(self.output_dir) if ranks.main else contextlib.nullcontext()
+            # SIGTERM / SIGHUP (a scheduler's preemption) end training like Ctrl-C: with a checkpoint
+            with lock, stop_signals():
+                if ranks.main:
+                    remove_leftovers(self.output_dir, LAST)  # temporary files of writes a kill interrupted
+                ranks.barrier()
+                return self._fit(resume)
 
     def _fit(self, resume: bool) -> TrainResult:
         exp, cfg, model = self.exp, self.cfg, self.exp.model
@@ -160,7 +188,15 @@ class Trainer:
             optimizer, warmup_cosine(cfg.warmup_steps, total, cfg.lr_schedule)
         )
         ema = EMA(model, exp.recipe.ema) if exp.recipe.ema.enabled else None
-        noise = torch.Generator(device=self.device).manual_seed(exp.recipe.seed)
+        ranks, micro = self.ranks, cfg.micro_batches
+        if micro % ranks.world:
+            raise RecipeError(f"train.micro_batches ({micro}) must be a multiple of the number of processes "
+                              f"({ranks.world})", source=exp.source, key="train.micro_batches")
+        mine = ranks.mine(micro)
+        # one diffusion-noise stream per micro-batch (the first one is the single-batch run's)
+        noises = {i: torch.Generator(device=self.device).manual_seed(exp.recipe.seed if i == 0 else
+                                                                       exp.recipe.seed * 1_000_003 + 7919 * i)
+                  for i in mine}
         step, epoch, batch_in_epoch = 0, 0, 0
         if state is not None:
             try:
@@ -175,12 +211,16 @@ class Trainer:
                 for group in optimizer.param_groups:
                     group["lr"] = group["initial_lr"] * factor
                 lr_sched._last_lr = [g["lr"] for g in optimizer.param_groups]
+                saved = state["noise_rng"]
+                saved = saved if isinstance(saved, list) else [saved]  # one stream per micro-batch
                 try:
-                    noise.set_state(state["noise_rng"])
+                    for i in mine:
+                        noises[i].set_state(saved[i])
                 except RuntimeError:  # saved on another device (train.device may change on resume)
                     import warnings
 
-                    noise.manual_seed(exp.recipe.seed * 1_000_003 + int(state["step"]))
+                    for i in mine:
+                        noises[i].manual_seed(exp.recipe.seed * 1_000_003 + int(state["step"]) + 7919 * i)
                     warnings.warn(f"{ckpt_path}: the diffusion-noise generator was saved on another device; "
                                   "reseeded from (seed, step): the run goes on, not bit-identical to an "
                                   "uninterrupted one", stacklevel=2)
@@ -190,24 +230,37 @@ class Trainer:
                 raise CheckpointError(f"{ckpt_path}: cannot resume into this recipe's model: "
                                       f"{describe_mismatch(model, state['model']) or str(err).splitlines()[0]}") from None
             step, epoch, batch_in_epoch = int(state["step"]), int(state["epoch"]), int(state["batch_in_epoch"])
-            if cfg.logger == "csv":
+            if cfg.logger == "csv" and ranks.main:
                 trim_csv_logs(self.output_dir, step)  # rows a killed run logged after its last checkpoint
-        logger = self._logger()
+        logger = self._logger() if ranks.main else None
         loss_fn = torch.compile(model.loss) if cfg.compile else model.loss
+        parallel = None
+        if ranks.enabled:  # torch's DistributedDataParallel: gradients averaged across ranks in backward
+            parallel = torch.nn.parallel.DistributedDataParallel(
+                _Objective(model, loss_fn), device_ids=[self.device.index] if self.device.type == "cuda" else None,
+            )
         sums = {"loss": 0.0, "loss_bc": 0.0, "loss_wm": 0.0, "wm_error": 0.0}
         count, last_means = 0, {k: float("nan") for k in sums}  # no step in this call (a finished run resumed)
         t0, samples = time.perf_counter(), 0
-        bar = tqdm(total=total, initial=step, disable=not self.progress, desc=exp.recipe.name, unit="step")
+        bar = tqdm(total=total, initial=step, disable=not (self.progress and ranks.main), desc=exp.recipe.name,
+                   unit="step")
 
         saved_step = step if state is not None else -1
 
         def checkpoint() -> Path:
             nonlocal saved_step
+            # every rank's noise streams (a collective), written by rank 0 only
+            streams = {i: g for part in ranks.gather({i: noises[i].get_state().cpu() for i in mine})
+                       for i, g in part.items()}
+            if not ranks.main:
+                saved_step = step
+                ranks.barrier()  # rank 0 is writing
+                return ckpt_path
             payload = {
                 "model": model.state_dict(),
                 "optimizer": optimizer.state_dict(),
                 "lr_scheduler": lr_sched.state_dict(),
-                "noise_rng": noise.get_state(),
+                "noise_rng": streams[0] if micro == 1 else [streams[i] for i in range(micro)],
                 "step": step,
                 "epoch": epoch,
                 "batch_in_epoch": batch_in_epoch,
@@ -219,6 +272,7 @@ class Trainer:
             with signals_deferred() as received:
                 path = save_checkpoint(ckpt_path, payload)
                 saved_step = step
+            ranks.barrier()
             if received:
                 raise interruption(received[0])
             return path
@@ -228,12 +282,25 @@ class Trainer:
                 order = self._epoch_order(epoch, len(dataset))
                 while batch_in_epoch < per_epoch and step < total:
                     idx = order[batch_in_epoch * cfg.batch_size : (batch_in_epoch + 1) * cfg.batch_size]
-                    batch = dataset.batch(idx).to(self.device)
-                    with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
-                        losses = loss_fn(batch, generator=noise)
                     optimizer.zero_grad(set_to_none=True)
-                    # the objective is the sum of the loss_* terms (TorchRL's convention)
-                    sum(losses[k] for k in losses.keys() if k.startswith("loss_")).backward()
+                    size = idx.numel() // micro
+                    step_losses = {k: 0.0 for k in sums}
+                    for j, i in enumerate(mine):
+                        batch = dataset.batch(idx[i * size : (i + 1) * size]).to(self.device)
+                        # DDP all-reduces (averages over ranks) in the last backward of the step only
+                        sync = parallel is None or j == len(mine) - 1
+                        with (contextlib.nullcontext() if sync else parallel.no_sync()), \
+                                torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                            # the objective is the sum of the loss_* terms (TorchRL's convention)
+                            if parallel is None:
+                                losses = loss_fn(batch, generator=noises[i])
+                                objective = sum(losses[k] for k in losses.keys() if k.startswith("loss_"))
+                            else:
+                                objective, losses = parallel(batch, noises[i])
+                            # the mean over the global batch, whatever share of it this rank holds
+                            (objective * (ranks.world / micro)).backward()
+                        for k in step_losses:
+                            step_losses[k] += losses[k].detach().item() / len(mine)
                     if cfg.grad_clip_norm:
                         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
                     optimizer.step()
@@ -244,11 +311,12 @@ class Trainer:
                     batch_in_epoch += 1
                     samples += idx.numel()
                     for k in sums:
-                        sums[k] += losses[k].detach().item()
+                        sums[k] += step_losses[k]
                     count += 1
                     bar.update(1)
                     if step % cfg.log_every_steps == 0 or step == total:
-                        means = {k: v / count for k, v in sums.items()}
+                        means = dict(zip(sums, ranks.all_reduce_mean([v / count for v in sums.values()],
+                                                                     self.device)))
                         bar.set_postfix({k: f"{v:.4f}" for k, v in means.items()})
                         if logger is not None:
                             for k, v in means.items():
@@ -270,7 +338,8 @@ class Trainer:
         bar.close()
         path = checkpoint()
         seconds = time.perf_counter() - t0
-        final = {k: v / count for k, v in sums.items()} if count else last_means
+        final = dict(zip(sums, ranks.all_reduce_mean([v / count for v in sums.values()], self.device))) \
+            if count else last_means
         return TrainResult(
             steps=step, epochs=epoch, loss=final["loss"], loss_bc=final["loss_bc"], loss_wm=final["loss_wm"],
             wm_error=final["wm_error"],
