@@ -1,0 +1,22 @@
+"""One table of several `ddp detect` runs: per statistic and (task, disturbance), the episodes detected
+within one chunk of the first visible chunk, and the ID test episodes with a false alarm.
+
+    python3 scripts/detection_summary.py results/detection/*_cpu*.json
+"""
+import json, sys
+files = sys.argv[1:]
+reps = [(f.split('/')[-1].replace('.json',''), json.load(open(f))) for f in files]
+scores = [r["score"] for r in reps[0][1]["rows"] if "error" not in r]
+head = "| score | " + " | ".join(f"{n} / {d}" for n, rep in reps for d in rep["disturbances"]) + " |"
+lines = [head, "|---|" + "---|" * (len(head.split("|")) - 3)]
+for sc in scores:
+    cells = []
+    for n, rep in reps:
+        row = next((r for r in rep["rows"] if r["score"] == sc), None)
+        for d in rep["disturbances"]:
+            if row is None or "error" in row:
+                cells.append("-"); continue
+            x = row[d]
+            cells.append(f"{x['detected_within_1']}/{x['episodes']} ({row['id_false_alarm_episodes']} FA)")
+    lines.append(f"| {sc} | " + " | ".join(cells) + " |")
+print("\n".join(lines))
