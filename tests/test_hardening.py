@@ -123,8 +123,10 @@ def test_preemption_signal_saves_and_resumes(tmp_path, sig):
     recipe = tmp_path / "r.yaml"
     recipe.write_text(yaml.safe_dump(r))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # a test runner started under nohup passes SIGHUP on ignored, and ddp keeps it ignored: restore it
     proc = subprocess.Popen([sys.executable, "-m", "ddp", "train", str(recipe), "--quiet"], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))
     log = tmp_path / "run" / "logs" / "scalars" / "loss.csv"
     deadline = time.time() + 120
     while time.time() < deadline and not (log.exists() and len(log.read_text().splitlines()) >= 3):
