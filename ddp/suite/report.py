@@ -117,7 +117,7 @@ def plot(table: dict, path: Path, title: str) -> None:
     plt = _pyplot()
     tasks, rows = table["tasks"], table["rows"]
     width = 0.8 / max(1, len(rows))
-    fig, ax = plt.subplots(figsize=(2 + 1.2 * len(tasks) * max(1, len(rows)) / 3, 3.6))
+    fig, ax = plt.subplots(figsize=(4 + 1.2 * len(tasks) * max(1, len(rows)) / 3, 3.6))
     for i, (m, p) in enumerate(rows):
         means, errs = [], [[], []]
         for t in tasks:
@@ -136,7 +136,7 @@ def plot(table: dict, path: Path, title: str) -> None:
     ax.set_ylim(0, 105)
     ax.set_ylabel("success rate (%)")
     ax.set_title(title)
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the bars, not over them
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
