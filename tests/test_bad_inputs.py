@@ -187,6 +187,24 @@ CASES = [
     ("bench-cuda-on-cpu", lambda t, tr: ["bench", tr["recipe"], "--device", "cuda"], "--device: 'cuda' but CUDA is not available"),
     ("demos-zero-episodes", lambda t, tr: ["demos", tr["recipe"], "--episodes", "0"], "--episodes: must be >= 1"),
     ("list-unknown-kind", lambda t, tr: ["list", "detectr"], "unknown plugin kind 'detectr'; did you mean 'detector'?"),
+    # -------- detect and suite
+    ("detect-alpha-out-of-range", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--alpha", "1.5"],
+     "--alpha: must be in (0, 1)"),
+    ("detect-unknown-score", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--scores", "point_newst"],
+     "--scores: unknown score 'point_newst'; did you mean 'point_newest'"),
+    ("detect-bad-env-pair", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--env", "displacement_chunk"],
+     "--env: expected KEY=VALUE"),
+    ("detect-missing-rollouts", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--rollouts", str(t / "x.npz")],
+     "--rollouts: no such file"),
+    ("suite-missing-file", lambda t, tr: ["suite", str(t / "nope.yaml")], "suite file not found"),
+    ("suite-unknown-key", lambda t, tr: ["suite", write(t / "s.yaml", {"name": "s", "tasks": {"a": tr["recipe"]},
+                                                                           "sedes": [0]})],
+     "unknown key 'sedes'; did you mean 'seeds'"),
+    ("suite-zero-workers", lambda t, tr: ["suite", write(t / "s.yaml", {"name": "s", "tasks": {"a": tr["recipe"]}}),
+                                          "--workers", "0"], "--workers: must be >= 1"),
+    ("suite-report-nothing-yet", lambda t, tr: ["suite", write(t / "s.yaml", {"name": "s", "tasks": {"a": tr["recipe"]},
+                                                                                  "results_dir": str(t / "res")}),
+                                                "--report"], "no finished runs of suite 's'"),
 ]
 
 
