@@ -38,6 +38,7 @@ import torch
 from tensordict import TensorDictBase
 
 from ddp.contracts import check as check_contract
+from ddp.detectors.scores import ScoreSpec, residual_score
 from ddp.keys import KeyedModule
 from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite
 
@@ -187,13 +188,6 @@ class DDPController(KeyedModule):
             self.states[b].predicted, self.states[b].pending = predicted[i], None
             self.states[b].spread = None if spread is None else spread[i]
 
-    def _discrepancy(self, real: torch.Tensor, s: EnvState) -> float:
-        """D_R-I = ||O_real - O_pred||^2, averaged over the M latest frames and the latent dims."""
-        if s.predicted is None:
-            return float("nan")
-        m = real.shape[0]
-        return float(((real - s.predicted[-m:]) ** 2).mean())
-
     # ------------------------------------------------------------------ safety
     def _usable(self, latents: torch.Tensor | None) -> bool:
         return latents is not None and bool(torch.isfinite(latents).all())
@@ -238,20 +232,19 @@ class DDPController(KeyedModule):
         ee_shift = torch.zeros(B, 3)
         if self.forecast_every_cycle or self.detector.needs_discrepancy:
             self._forecast(list(range(B)))
-        discrepancy = torch.tensor(
-            [self._discrepancy(real[b], self.states[b]) if finite[b] else float("inf") for b in range(B)]
-        )
-        td.set(self.key("discrepancy"), discrepancy)
         # what detectors score: the real window and its forecast (NaN before the first forecast)
-        td.set(self.key("latent_real"), real.float().to(env_device))
         nan = torch.full_like(real[0], float("nan"))
-        td.set(self.key("latent_pred"), torch.stack([
-            s.predicted[-M:].to(real) if s.predicted is not None else nan for s in self.states
-        ]).float().to(env_device))
+        predicted = torch.stack([s.predicted[-M:].to(real) if s.predicted is not None else nan for s in self.states])
+        # D_R-I = ||O_real - O_pred||^2 over the M latest frames and the latent dims (the paper's statistic);
+        # a non-finite observation reads inf
+        discrepancy = residual_score(real, predicted, ScoreSpec()).float().cpu()
+        td.set(self.key("discrepancy"), torch.where(finite, discrepancy, torch.tensor(float("inf"))))
+        td.set(self.key("latent_real"), real.float().to(env_device))
+        td.set(self.key("latent_pred"), predicted.float().to(env_device))
         td.set(self.key("point_dims"), torch.full((B,), self.model.point_dims, dtype=torch.int64))
-        if self.forecast_samples > 1:
+        if self.forecast_samples > 1:  # the spread exists exactly where the forecast does
             td.set(self.key("latent_pred_std"), torch.stack([
-                s.spread[-M:].to(real) if s.spread is not None and s.predicted is not None else nan for s in self.states
+                s.spread[-M:].to(real) if s.spread is not None else nan for s in self.states
             ]).float().to(env_device))
 
         # Delta p_C per tracked object [B, K, 3]: the tracker's output sizes the object masks (K = 0 without one)
