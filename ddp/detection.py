@@ -176,18 +176,11 @@ def _rollouts(exp, protocol: str, *, episodes: int, seed: int, env: dict, progre
 
 
 def _statistics(episodes: list[dict], spec, cal, point_dims: int) -> list[list[float]]:
-    import torch
+    """Each episode's thresholded statistic per chunk, as the online detector computes it."""
+    from ddp.detectors.scores import episode_scores, episode_statistic
 
-    from ddp.detectors.scores import episode_statistic, residual_score
-
-    center, scale = cal.tensors()
-    out = []
-    for ep in episodes:
-        std = torch.as_tensor(ep["latent_pred_std"]) if spec.spread else None
-        s = residual_score(torch.as_tensor(ep["latent_real"]), torch.as_tensor(ep["latent_pred"]), spec,
-                           point_dims=point_dims, center=center, scale=scale, std=std).numpy()
-        out.append([float(v) for v in episode_statistic(s, spec, cal)])
-    return out
+    return [[float(v) for v in episode_statistic(episode_scores(ep, spec, cal, point_dims), spec, cal)]
+            for ep in episodes]
 
 
 def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, alpha: float = 0.05,

@@ -39,7 +39,8 @@ import numpy as np
 import torch
 
 __all__ = [
-    "ScoreSpec", "ScoreCalibration", "residual_score", "conformal_threshold", "episode_statistic", "fit_calibration",
+    "ScoreSpec", "ScoreCalibration", "residual_score", "conformal_threshold", "episode_scores", "episode_statistic",
+    "fit_calibration",
 ]
 
 DIMS = ("all", "point", "state")
@@ -209,15 +210,22 @@ def _episode_std(ep: dict, spec: ScoreSpec) -> torch.Tensor | None:
     return torch.as_tensor(np.asarray(ep["latent_pred_std"], dtype=np.float64))
 
 
-def _scores(episodes, spec: ScoreSpec, point_dims: int, cal: ScoreCalibration) -> list[np.ndarray]:
+def episode_scores(ep: dict, spec: ScoreSpec, cal: ScoreCalibration, point_dims: int = 0) -> np.ndarray:
+    """The instantaneous score of every chunk of a recorded episode (``latent_real`` / ``latent_pred`` /
+    ``latent_pred_std`` arrays [chunks, M, D]), as the detector computes it online."""
     center, scale = cal.tensors()
+    real = torch.as_tensor(np.asarray(ep["latent_real"], dtype=np.float64))
+    pred = torch.as_tensor(np.asarray(ep["latent_pred"], dtype=np.float64))
+    std = _episode_std(ep, spec)
+    return residual_score(real, pred, spec, point_dims=point_dims, center=center, scale=scale, std=std).numpy()
+
+
+def _scores(episodes, spec: ScoreSpec, point_dims: int, cal: ScoreCalibration) -> list[np.ndarray]:
+    """Calibration's scores: a non-finite chunk (sensor fault) is no ID evidence and reads NaN."""
     out = []
     for ep in episodes:
-        real = torch.as_tensor(np.asarray(ep["latent_real"], dtype=np.float64))
-        pred = torch.as_tensor(np.asarray(ep["latent_pred"], dtype=np.float64))
-        std = _episode_std(ep, spec)
-        s = residual_score(real, pred, spec, point_dims=point_dims, center=center, scale=scale, std=std).numpy()
-        out.append(np.where(np.isfinite(s), s, np.nan))  # a non-finite chunk (sensor fault) is no ID evidence
+        s = episode_scores(ep, spec, cal, point_dims)
+        out.append(np.where(np.isfinite(s), s, np.nan))
     return out
 
 
