@@ -62,7 +62,7 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
                     batch_size=[1], device=dev)
     ctrl(td.clone())  # a first cycle so that D_R-I has a forecast to compare with
     window = (1, model.obs_steps, model.encoder.out_dim)
-    det_td = TensorDict({("ddp", "discrepancy"): torch.rand(1), ("ddp", "latent_real"): torch.rand(window),
+    det_td = TensorDict({("ddp", "latent_real"): torch.rand(window),
                          ("ddp", "latent_pred"): torch.rand(window), "chunk_index": torch.ones(1, 1, dtype=torch.long)},
                         batch_size=[1])
     out["detector_ms"] = _timed(lambda: ctrl.detector(det_td), repeats=repeats, warmup=warmup, device=dev)

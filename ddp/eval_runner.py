@@ -148,7 +148,7 @@ def _disturbed(traj) -> list[bool] | None:
     flags = None
     if ("privileged", "displacement") in keys:
         disp = traj.get(("privileged", "displacement"))
-        flags = disp.flatten(1).reshape(disp.shape[0], -1, disp.shape[-1]).norm(dim=-1).amax(-1) > 1e-6
+        flags = disp.reshape(disp.shape[0], -1, disp.shape[-1]).norm(dim=-1).amax(-1) > 1e-6  # any object moved
     if ("privileged", "occluded") in keys:
         occ = traj.get(("privileged", "occluded")).reshape(-1).bool()
         flags = occ if flags is None else flags | occ

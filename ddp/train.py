@@ -245,6 +245,10 @@ class Trainer:
         bar = tqdm(total=total, initial=step, disable=not (self.progress and ranks.main), desc=exp.recipe.name,
                    unit="step")
 
+        def window_means() -> dict[str, float]:
+            """The loss terms averaged over the steps since the last log line, and over the ranks (a collective)."""
+            return dict(zip(sums, ranks.all_reduce_mean([v / count for v in sums.values()], self.device)))
+
         saved_step = step if state is not None else -1
 
         def checkpoint() -> Path:
@@ -315,8 +319,7 @@ class Trainer:
                     count += 1
                     bar.update(1)
                     if step % cfg.log_every_steps == 0 or step == total:
-                        means = dict(zip(sums, ranks.all_reduce_mean([v / count for v in sums.values()],
-                                                                     self.device)))
+                        means = window_means()
                         bar.set_postfix({k: f"{v:.4f}" for k, v in means.items()})
                         if logger is not None:
                             for k, v in means.items():
@@ -338,8 +341,7 @@ class Trainer:
         bar.close()
         path = checkpoint()
         seconds = time.perf_counter() - t0
-        final = dict(zip(sums, ranks.all_reduce_mean([v / count for v in sums.values()], self.device))) \
-            if count else last_means
+        final = window_means() if count else last_means
         return TrainResult(
             steps=step, epochs=epoch, loss=final["loss"], loss_bc=final["loss_bc"], loss_wm=final["loss_wm"],
             wm_error=final["wm_error"],

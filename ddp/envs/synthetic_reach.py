@@ -179,11 +179,6 @@ class SyntheticReachEnv(PointCloudEnv):
             "attached": self._flag(self.attached),
         }
 
-    @property
-    def success(self) -> bool:
-        """Whether the cube has been lifted in this episode."""
-        return self._success
-
     # -------------------------------------------------------------- disturbances and tracking
     def displace_objects(self, delta) -> None:
         """Move the cube by ``delta`` now (a sudden OOD displacement)."""

@@ -94,8 +94,8 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
         store.save(run, result)
         done[run.run_id] = result
         rates = ", ".join(f"{p} {100 * v['success_rate']:.0f} %" for p, v in result["protocols"].items())
-        bar.write(f"finished {run.run_id} in {_fmt(result['wall_seconds'])}: {rates}") if progress else \
-            echo(f"finished {run.run_id} in {_fmt(result['wall_seconds'])}: {rates}")
+        say = bar.write if progress else echo  # a bar's own write keeps the line above the bar
+        say(f"finished {run.run_id} in {_fmt(result['wall_seconds'])}: {rates}")
         bar.update(1)
 
     try:
