@@ -31,7 +31,6 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=32, help="training batch (the recipes' own is 128)")
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args()
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {platform.processor() or platform.machine()}, {args.threads} threads, "
           f"batch 1 for latency, batch {args.batch} for training, {args.repeats} repeats")

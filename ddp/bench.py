@@ -34,7 +34,8 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     """Milliseconds per call of each stage, and training samples per second."""
     from tensordict import TensorDict
 
-    from ddp.train import resolve_device
+    from ddp.models.ema import EMA
+    from ddp.train import make_optimizer, resolve_device
 
     dev = resolve_device(device, key="--device")
     model = exp.model.to(dev).eval()
@@ -76,13 +77,16 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
         "agent_pos": torch.rand(B, T, D, device=dev),
         "action": torch.rand(B, T, r.task.action_dim, device=dev) * 2 - 1,
     }, batch_size=[B], device=dev)
-    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    opt = make_optimizer(model, r.train)
+    ema = EMA(model, r.ema) if r.ema.enabled else None
 
     def step():
         loss = model.loss(batch)["loss"]
         opt.zero_grad()
         loss.backward()
         opt.step()
+        if ema is not None:
+            ema.update(model)
 
     ms = _timed(step, repeats=train_steps, warmup=1, device=dev)
     out["train_step_ms"] = ms

@@ -197,23 +197,30 @@ def cmd_detect(args) -> int:
 
 
 def cmd_suite(args) -> int:
-    from ddp.suite import load_suite, run_suite, write_suite_report
+    from ddp.suite import load_suite, run_suite, select, write_suite_report
     from ddp.suite.store import ResultStore
 
     _at_least_one(workers=args.workers, threads=args.threads)
     suite = load_suite(args.suite)
+    try:
+        seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else None
+    except ValueError:
+        raise DDPError(f"--seeds takes comma-separated integers, got {args.seeds!r}") from None
+    chosen = select(suite, tasks=args.tasks.split(",") if args.tasks else None,
+                    methods=args.methods.split(",") if args.methods else None, seeds=seeds)
     if args.dry_run:
-        for run in suite.runs:
+        for run in chosen.runs:
             protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
             print(f"{run.run_id}: {run.recipe['name']}, protocols {protocols}, -> {run.recipe['train']['output_dir']}")
-        print(f"{len(suite.runs)} runs; results in {suite.results_dir}")
+        print(f"{len(chosen.runs)} runs; results in {suite.results_dir}")
         return 0
     if args.report:
         done = ResultStore(suite.results_dir).all(suite.runs)
     else:
         ray = (args.ray or True) if args.ray is not None else False
-        done = run_suite(suite, workers=args.workers, threads=args.threads, progress=not args.quiet, ray=ray,
-                         gpus_per_run=args.gpus_per_run)
+        run_suite(chosen, workers=args.workers, threads=args.threads, progress=not args.quiet, ray=ray,
+                  gpus_per_run=args.gpus_per_run)
+        done = ResultStore(suite.results_dir).all(suite.runs)  # the table covers every stored run
     results = [done[r.run_id] for r in suite.runs if r.run_id in done]
     if not results:
         raise DDPError(f"no finished runs of suite {suite.name!r} in {suite.results_dir} yet")
@@ -369,6 +376,9 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS", help="run each run as a Ray task: on a local Ray started here (--ray) or a cluster (--ray ADDRESS, e.g. ray://head:10001 or auto); needs the ray extra")
     p.add_argument("--gpus-per-run", type=float, default=0.0, help="with --ray: GPUs each run asks for (default 0)")
     p.add_argument("--report", action="store_true", help="only aggregate the stored results (run nothing)")
+    p.add_argument("--tasks", help="comma-separated task labels to run (default: all)")
+    p.add_argument("--methods", help="comma-separated method labels to run (default: all)")
+    p.add_argument("--seeds", help="comma-separated seeds to run (default: all); runs go seed by seed")
     p.add_argument("--dry-run", action="store_true", help="list the runs and exit")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_suite)
@@ -385,8 +395,9 @@ def make_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    # On a busy 2-core machine, spinning OpenMP workers slow small models down many-fold.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    # OpenMP's default wait policy (workers spin briefly between parallel regions) is left alone: on this
+    # 2-core CPU, OMP_WAIT_POLICY=PASSIVE made training 1.7x and batch-1 sampling 2x slower. Concurrent
+    # suite workers get PASSIVE (ddp.suite.runner), where spinning threads would steal each other's cores.
     parser = make_parser()
     args = parser.parse_args(argv)
     if args.command == "list" and args.kind:

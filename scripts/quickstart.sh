@@ -9,6 +9,5 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh metaworld
 VENV="${DDP_VENV:-.venv}"
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
-export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
 "$VENV/bin/ddp" demos recipes/metaworld/quickstart_ddp.yaml
 exec "$VENV/bin/ddp" run recipes/metaworld/quickstart_ddp.yaml recipes/metaworld/quickstart_dp3.yaml --no-resume "$@"

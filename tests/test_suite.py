@@ -11,7 +11,7 @@ import yaml
 
 from conftest import TINY
 from ddp.errors import RecipeError
-from ddp.suite import ResultStore, aggregate, load_suite, run_suite, write_suite_report
+from ddp.suite import ResultStore, aggregate, load_suite, run_suite, select, write_suite_report
 from ddp.suite.report import wilson
 
 
@@ -43,8 +43,8 @@ def suite_file(tmp_path, monkeypatch):
 
 def test_expansion(suite_file):
     suite = load_suite(suite_file)
-    assert [r.run_id for r in suite.runs] == [
-        f"{t}__{m}__seed{s}" for t in ("near", "far") for m in ("ddp", "dp3") for s in (0, 1)
+    assert [r.run_id for r in suite.runs] == [  # seed-major: every task and method once before repeats
+        f"{t}__{m}__seed{s}" for s in (0, 1) for t in ("near", "far") for m in ("ddp", "dp3")
     ]
     run = suite.runs[0]
     assert run.recipe["name"] == "tiny_suite_near_ddp_s0" and run.recipe["seed"] == 0
@@ -57,6 +57,19 @@ def test_expansion(suite_file):
     assert far.recipe["env"]["displacement_delta"] == [0.3, 0, 0] and far.benchmark == "synthetic"
     assert run.benchmark == "tiny_suite"
     assert len({r.recipe_hash for r in suite.runs}) == len(suite.runs)
+
+
+def test_select_runs_a_part_and_names_the_closest_label(suite_file):
+    suite = load_suite(suite_file)
+    part = select(suite, methods=["dp3"], seeds=[1])
+    assert [r.run_id for r in part.runs] == ["near__dp3__seed1", "far__dp3__seed1"]
+    assert [r.run_id for r in select(suite, tasks=["far"]).runs] == [
+        "far__ddp__seed0", "far__dp3__seed0", "far__ddp__seed1", "far__dp3__seed1"]
+    assert select(suite).runs == suite.runs
+    with pytest.raises(RecipeError, match="'dp' is not in the suite; did you mean 'dp3'"):
+        select(suite, methods=["dp"])
+    with pytest.raises(RecipeError, match="seeds.*7 is not in the suite"):
+        select(suite, seeds=[7])
 
 
 def test_task_protocols_keep_those_a_task_supports(suite_file):

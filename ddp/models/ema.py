@@ -38,11 +38,16 @@ class EMA(nn.Module):
         self.optimization_step += 1
         self.decay = ema_decay(int(self.optimization_step), self.cfg)
         d = self.decay
+        averaged, frozen = ([], []), ([], [])  # (ema, model) tensors, updated in one foreach call each
         for ema_p, p in zip(self.module.parameters(), model.parameters()):
-            if p.requires_grad:
-                ema_p.mul_(d).add_(p.detach(), alpha=1.0 - d)
-            else:
-                ema_p.copy_(p)
+            pair = averaged if p.requires_grad else frozen
+            pair[0].append(ema_p)
+            pair[1].append(p.detach())
         for ema_b, b in zip(self.module.buffers(), model.buffers()):
-            ema_b.copy_(b)
+            frozen[0].append(ema_b)
+            frozen[1].append(b)
+        if averaged[0]:
+            torch._foreach_lerp_(averaged[0], averaged[1], 1.0 - d)  # ema <- d * ema + (1 - d) * p
+        if frozen[0]:
+            torch._foreach_copy_(frozen[0], frozen[1])
         return d

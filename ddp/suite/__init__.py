@@ -2,8 +2,8 @@
 
 from ddp.suite.report import aggregate, write_suite_report
 from ddp.suite.runner import execute_run, run_suite
-from ddp.suite.spec import RunSpec, SuiteSpec, load_suite
+from ddp.suite.spec import RunSpec, SuiteSpec, load_suite, select
 from ddp.suite.store import ResultStore
 
-__all__ = ["RunSpec", "SuiteSpec", "load_suite", "ResultStore", "execute_run", "run_suite", "aggregate",
+__all__ = ["RunSpec", "SuiteSpec", "load_suite", "select", "ResultStore", "execute_run", "run_suite", "aggregate",
            "write_suite_report"]

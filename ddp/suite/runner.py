@@ -110,6 +110,9 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
             from concurrent.futures import ProcessPoolExecutor, as_completed
 
             per = threads or max(1, (os.cpu_count() or 1) // workers)
+            # several processes share the cores: OpenMP threads that spin between ops would steal them
+            # (read by each spawned worker when it loads torch; a value the user set is kept)
+            os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
             with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
                 futures = {}
                 for run in todo:

@@ -181,5 +181,25 @@ def load_suite(path: str | Path) -> SuiteSpec:
                     raise blame_override(err, overrides) from None
                 runs.append(RunSpec(name, label, m_label, seed, task_bench[label], r,
                                     tuple(chosen) if chosen else None, episodes))
+    runs.sort(key=lambda r: seeds.index(r.seed))  # seed-major: every task and method once before any repeats
     results_dir = Path(data.get("results_dir") or f"results/suites/{name}")
     return SuiteSpec(name, runs, list(seeds), task_bench, list(methods), results_dir, source, method_protocols)
+
+
+def select(suite: SuiteSpec, *, tasks: list[str] | None = None, methods: list[str] | None = None,
+           seeds: list[int] | None = None) -> SuiteSpec:
+    """The suite restricted to some task labels, method labels and seeds (None: all); an unknown one is a
+    one-line RecipeError naming the closest label. Results stay in the same store."""
+    from dataclasses import replace
+
+    from ddp.errors import suggest
+
+    for key, wanted, known in (("tasks", tasks, list(suite.tasks)), ("methods", methods, suite.methods),
+                               ("seeds", seeds, suite.seeds)):
+        for value in wanted or []:
+            if value not in known:
+                raise RecipeError(f"{value!r} is not in the suite{suggest(str(value), [str(k) for k in known])} "
+                                  f"(it has: {', '.join(str(k) for k in known)})", source=suite.source, key=key)
+    runs = [r for r in suite.runs if (tasks is None or r.task in tasks) and (methods is None or r.method in methods)
+            and (seeds is None or r.seed in seeds)]
+    return replace(suite, runs=runs)
