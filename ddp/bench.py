@@ -1,5 +1,9 @@
 """Latency of the DDP control cycle and training throughput (``ddp bench``).
 
+``obs_to_action_ms`` is encode + policy sampling; ``control_cycle_ms`` the whole controller call with
+the world-model forecast inline; ``controller_latency_ms`` the controller call with the forecast made
+in the background while the chunk executes (``controller.async_forecast``): what a robot waits for.
+
 Medians of many runs after warm-up, at batch 1, CUDA-synchronised on a GPU.
 Numbers, not assertions: compare them across runs in the same process. :func:`compare`
 times the recipe and its eager DP3 baseline (the same recipe with the world model
@@ -15,11 +19,16 @@ import time
 import torch
 
 
-def _timed(fn, *, repeats: int, warmup: int, device: torch.device) -> float:
+def _timed(fn, *, repeats: int, warmup: int, device: torch.device, before=None) -> float:
+    """Median milliseconds of ``fn()``; ``before()`` runs untimed ahead of each call."""
     for _ in range(warmup):
+        if before is not None:
+            before()
         fn()
     times = []
     for _ in range(repeats):
+        if before is not None:
+            before()
         if device.type == "cuda":
             torch.cuda.synchronize()
         t = time.perf_counter()
@@ -58,7 +67,7 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
             out["world_model_imagine_ms"] = _timed(lambda: model.imagine(latent, actions, generator=g),
                                                    repeats=repeats, warmup=warmup, device=dev)
     detector = {"name": "discrepancy", "tau": 1.0} if model.has_world_model else {"name": "never"}
-    ctrl = exp.make_controller(detector=detector, tracker=False)
+    ctrl = exp.make_controller(detector=detector, tracker=False, async_forecast=False)
     td = TensorDict({"point_cloud": pc, "agent_pos": pos, "chunk_index": torch.ones(1, 1, dtype=torch.long, device=dev)},
                     batch_size=[1], device=dev)
     ctrl(td.clone())  # a first cycle so that D_R-I has a forecast to compare with
@@ -68,6 +77,12 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
                         batch_size=[1])
     out["detector_ms"] = _timed(lambda: ctrl.detector(det_td), repeats=repeats, warmup=warmup, device=dev)
     out["control_cycle_ms"] = _timed(lambda: ctrl(td.clone()), repeats=repeats, warmup=warmup, device=dev)
+    # what the robot waits for with the next forecast made in the background while the chunk executes
+    # (controller.async_forecast): the previous cycle's forecast has finished before the timed call
+    live = exp.make_controller(detector=detector, tracker=False, async_forecast=True)
+    out["controller_latency_ms"] = _timed(lambda: live(td.clone()), repeats=repeats, warmup=warmup, device=dev,
+                                          before=live.wait_forecast)
+    live.close()
     # training throughput on random windows of the recipe's shapes
     model.train()
     B = r.train.batch_size

@@ -113,11 +113,11 @@ class Experiment:
 
     def make_controller(self, *, detector: dict | None = None, imagine: bool | None = None,
                         track: bool | None = None, tracker: bool = True, seed: int | None = None,
-                        forecast_every_cycle: bool | None = None):
+                        forecast_every_cycle: bool | None = None, async_forecast: bool | None = None):
         """The DDP controller (Algorithm 2) around ``model`` from the recipe's ``controller`` section.
 
         ``detector`` replaces the recipe's detector section (e.g. ``{"name": "never"}``); ``imagine``
-        / ``track`` / ``forecast_every_cycle`` override the recipe's flags; ``tracker=False`` drops
+        / ``track`` / ``forecast_every_cycle`` / ``async_forecast`` override the recipe's flags; ``tracker=False`` drops
         tracking and recovery.
         """
         from ddp.inference import DDPController, Subtask
@@ -149,6 +149,7 @@ class Experiment:
             track=c.track if track is None else track,
             forecast_every_cycle=c.forecast_every_cycle if forecast_every_cycle is None else forecast_every_cycle,
             forecast_samples=c.forecast_samples,
+            async_forecast=c.async_forecast if async_forecast is None else async_forecast,
             seed=self.recipe.seed if seed is None else seed,
             on_nonfinite=c.on_nonfinite,
             hold=hold,

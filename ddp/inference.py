@@ -18,6 +18,12 @@ so nothing can flag an episode's first chunk from D_R-I), ``point_dims``
 ``forecast_samples`` K > 1 (the forecast is then the mean of K world-model
 samples), ``latent_pred_std`` [B, M, D], their spread.
 
+World-model forecasts use their own random stream (``seed`` + 1), apart from the policy's. Where every
+cycle needs one (a D_R-I detector, or ``forecast_every_cycle``) it is made right after the chunk is
+chosen, and with ``async_forecast`` (the default) in a background thread while the environment
+executes the chunk: the robot waits only for encode, detect and the policy, and the results are
+those of the inline forecast exactly. Otherwise forecasts are made lazily, when imagination needs one.
+
 An OOD flag with no displaced object to track (a false alarm, an occlusion,
 a sensor fault) is re-checked on the next cycle: the controller imagines
 for as long as the statistic stays above tau, then returns to reality.
@@ -32,6 +38,7 @@ env's hold action: zero motion, gripper command unchanged; ``("ddp", "held")``).
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
@@ -43,6 +50,7 @@ from ddp.keys import KeyedModule
 from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite
 
 MIN_OFFSET = 1e-6  # metres: smaller tracked offsets mean "did not move"
+FORECAST_STREAM = 1  # the world model's noise is seeded with seed + FORECAST_STREAM (the policy's with seed)
 
 
 @dataclass
@@ -102,6 +110,7 @@ class DDPController(KeyedModule):
         track: bool = True,
         forecast_every_cycle: bool = False,
         forecast_samples: int = 1,
+        async_forecast: bool = False,
         seed: int = 0,
         on_nonfinite: str = "raise",
         hold: HoldSpec | None = None,
@@ -132,8 +141,13 @@ class DDPController(KeyedModule):
         self.subtasks = subtasks or [Subtask(target=0, trigger=None)]
         self.imagine = imagine
         self.track = track
-        self.forecast_every_cycle = forecast_every_cycle
+        # forecasts made right after each chunk is chosen (the D_R-I detector needs one every cycle),
+        # in the background thread with async_forecast; otherwise lazily, when imagination needs one
+        self.forecast_every_cycle = forecast_every_cycle or detector.needs_discrepancy
         self.forecast_samples = forecast_samples
+        self.async_forecast = async_forecast and self.forecast_every_cycle and model.has_world_model
+        self._pool: ThreadPoolExecutor | None = None  # one background thread for the forecasts
+        self._job: tuple[list[int], Future] | None = None  # the forecast being made while the chunk executes
         self.seed = seed
         self.on_nonfinite = on_nonfinite
         self.hold = DELTAS if hold is None else hold
@@ -146,8 +160,11 @@ class DDPController(KeyedModule):
         return next(self.model.parameters()).device
 
     def reset(self) -> None:
+        self.wait_forecast()
+        self._job = None  # a forecast for the previous episodes is dropped
         self.states: list[EnvState] = []
         self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
+        self.forecast_generator = torch.Generator(device=self.device).manual_seed(self.seed + FORECAST_STREAM)
         for part in (self.detector, self.tracker, self.recovery):  # each contract has reset()
             if part is not None:
                 part.reset()
@@ -166,27 +183,83 @@ class DDPController(KeyedModule):
             return chunk >= trig[1] and s.subtask_start < trig[1] and s.subtask < len(self.subtasks)
         return trig.fired(obs, chunk, chunk - s.subtask_start)
 
+    def _imagine(self, history: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """O_pred = W_phi(O_curr, a_t), batched: the forecast and, with K > 1 samples, their spread.
+
+        Runs in the calling thread or the background one (grad mode is per thread, hence no_grad here).
+        """
+        with torch.no_grad():
+            k = self.forecast_samples
+            if k == 1:
+                return self.model.imagine(history, actions, generator=self.forecast_generator), None
+            # K samples in one batched call: their mean is the forecast, their std its uncertainty
+            samples = self.model.imagine(history.repeat(k, 1, 1), actions.repeat(k, 1, 1),
+                                         generator=self.forecast_generator)
+            samples = samples.reshape(k, history.shape[0], *samples.shape[1:])
+            return samples.mean(0), samples.std(0)
+
+    def _store(self, envs: list[int], predicted: torch.Tensor, spread: torch.Tensor | None) -> None:
+        for i, b in enumerate(envs):
+            self.states[b].predicted, self.states[b].pending = predicted[i], None
+            self.states[b].spread = None if spread is None else spread[i]
+
+    def _pending(self, envs: list[int]) -> tuple[list[int], torch.Tensor, torch.Tensor] | None:
+        todo = [b for b in envs if self.states[b].pending is not None]
+        if not todo or not self.model.has_world_model:
+            return None
+        return (todo, torch.stack([self.states[b].pending[0] for b in todo]),
+                torch.stack([self.states[b].pending[1] for b in todo]))
+
     def _forecast(self, envs: list[int]) -> None:
         """O_pred = W_phi(O_curr, a_t) for the listed environments, one batched world-model call.
 
-        Forecasts are made lazily: only when D_R-I is needed (discrepancy detector, diagnostics)
-        or when the policy is about to act from imagination.
+        Lazy forecasts are made here, when D_R-I or imagination needs them; a background forecast
+        (``async_forecast``) is collected by :meth:`forward` before anything else.
         """
-        todo = [b for b in envs if self.states[b].pending is not None]
-        if not todo or not self.model.has_world_model:
+        pending = self._pending(envs)
+        if pending is not None:
+            self._store(pending[0], *self._imagine(pending[1], pending[2]))
+
+    def wait_forecast(self) -> None:
+        """Block until the background forecast (``async_forecast``), if one is running, is done."""
+        if self._job is not None:
+            self._job[1].exception()  # waits; an error surfaces when the result is collected
+
+    def _collect(self) -> None:
+        """Store the forecast made in the background while the last chunk executed (it raises its error)."""
+        if self._job is not None:
+            envs, job = self._job
+            self._job = None
+            self._store(envs, *job.result())
+
+    def _forecast_next(self) -> None:
+        """The next cycle's forecast, made now: inline, or in the background thread (``async_forecast``)."""
+        pending = self._pending(list(range(len(self.states))))
+        if pending is None:
             return
-        hist = torch.stack([self.states[b].pending[0] for b in todo])
-        acts = torch.stack([self.states[b].pending[1] for b in todo])
-        k = self.forecast_samples
-        if k == 1:
-            predicted, spread = self.model.imagine(hist, acts, generator=self.generator), None
-        else:  # K samples in one batched call: their mean is the forecast, their std its uncertainty
-            samples = self.model.imagine(hist.repeat(k, 1, 1), acts.repeat(k, 1, 1), generator=self.generator)
-            samples = samples.reshape(k, len(todo), *samples.shape[1:])
-            predicted, spread = samples.mean(0), samples.std(0)
-        for i, b in enumerate(todo):
-            self.states[b].predicted, self.states[b].pending = predicted[i], None
-            self.states[b].spread = None if spread is None else spread[i]
+        if not self.async_forecast:
+            self._store(pending[0], *self._imagine(pending[1], pending[2]))
+            return
+        if self._pool is None:
+            # one OpenMP thread for the forecast: a second multi-threaded OpenMP team in this process makes
+            # libgomp throttle its spinning for every team, and the policy on the main thread then ran
+            # 1.5x slower on 2 cores (the forecast itself, 1.2x slower, is off the critical path)
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ddp-forecast",
+                                            initializer=torch.set_num_threads, initargs=(1,))
+        self._job = (pending[0], self._pool.submit(self._imagine, pending[1], pending[2]))
+
+    def close(self) -> None:
+        """Wait for a background forecast and stop its thread (also done when the controller is collected)."""
+        self.wait_forecast()
+        self._job = None
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def __del__(self):
+        pool = self.__dict__.get("_pool")
+        if pool is not None:
+            pool.shutdown(wait=False)
 
     # ------------------------------------------------------------------ safety
     def _usable(self, latents: torch.Tensor | None) -> bool:
@@ -217,6 +290,7 @@ class DDPController(KeyedModule):
         )
         B, M = point_cloud.shape[0], self.model.obs_steps
         env_device = td.get(self.key("point_cloud")).device
+        self._collect()  # the forecast made while the last chunk executed (async_forecast)
         if len(self.states) != B:
             self.states = [EnvState() for _ in range(B)]
         for b in range(B):
@@ -224,14 +298,13 @@ class DDPController(KeyedModule):
                 self.states[b] = EnvState()
 
         # O_real^t = E_psi(X_real^t), on the model's device (the env's tensors may live elsewhere)
-        if self.generator.device != dev:  # the model moved since reset(): same seed, new device
+        if self.generator.device != dev:  # the model moved since reset(): same seeds, new device
             self.generator = torch.Generator(device=dev).manual_seed(self.seed)
+            self.forecast_generator = torch.Generator(device=dev).manual_seed(self.seed + FORECAST_STREAM)
         real = self.model.encode(point_cloud.to(dev), agent_pos.to(dev))
         # a non-finite observation, or latents that came out non-finite, are not reality: OOD
         finite = finite & torch.isfinite(real).flatten(1).all(1).cpu()
         ee_shift = torch.zeros(B, 3)
-        if self.forecast_every_cycle or self.detector.needs_discrepancy:
-            self._forecast(list(range(B)))
         # what detectors score: the real window and its forecast (NaN before the first forecast)
         nan = torch.full_like(real[0], float("nan"))
         predicted = torch.stack([s.predicted[-M:].to(real) if s.predicted is not None else nan for s in self.states])
@@ -340,6 +413,8 @@ class DDPController(KeyedModule):
             for b, s in enumerate(self.states):
                 s.pending = None if held[b] else (current[b], actions[b].to(dev))
                 s.predicted, s.spread = None, None
+            if self.forecast_every_cycle:  # now, or in the background while the chunk executes
+                self._forecast_next()
 
         td.set(self.key("action"), actions.to(env_device))
         td.set(self.key("ee_shift"), ee_shift)

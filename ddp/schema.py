@@ -148,6 +148,10 @@ class ControllerConfig:
     safe_lift: float = 0.0  # lift (m) before an end-effector shift, to avoid dragging through the table
     forecast_every_cycle: bool = False  # always run the world model (D_R-I diagnostics with any detector)
     forecast_samples: int = 1  # world-model samples per forecast: K > 1 forecasts their mean, and their spread
+    # where every cycle needs a forecast (a D_R-I detector, forecast_every_cycle), make it in a background
+    # thread while the chunk executes: the robot waits for encode + detect + policy only; the results are
+    # those of the inline forecast exactly (the world model has its own noise stream)
+    async_forecast: bool = True
     # (("ddp", "latent_pred_std")) lets a detector with spread: true scale residuals by the model's own uncertainty
     # an environment whose observation is not finite and that cannot act from imagination, or whose
     # sampled actions are not finite: "raise" a one-line error, or "hold" (the env's hold action:

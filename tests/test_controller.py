@@ -249,3 +249,53 @@ def test_tau_calibrated_from_id_rollouts_without_forecast_every_cycle(exp, tmp_p
     rep = exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path, progress=False)
     tau = rep["protocols"]["ood_ddp"]["tau"]
     assert tau is not None and tau > 0
+
+
+@pytest.mark.parametrize("samples", [1, 3])
+def test_async_forecast_equals_the_inline_one(exp, samples):
+    """async_forecast makes the next forecast in a background thread while the chunk executes: two envs,
+    one of which starts a new episode mid-way, give the same actions, forecasts and modes as the inline
+    forecast_every_cycle path (own noise stream), with the D_R-I detector and imagination in play."""
+    exp.recipe.controller.forecast_samples = samples
+    keys = ["point_cloud", "agent_pos", "chunk_index", "privileged"]
+    outs = {}
+    for mode in ("inline", "async"):
+        ctrl = exp.make_controller(detector={"name": "discrepancy", "tau": 0.05}, forecast_every_cycle=True,
+                                   async_forecast=mode == "async")
+        envs = [make_chunked_env(exp, seed=0), make_chunked_env(exp, seed=1, overrides={"displacement": False})]
+        obs = [e.reset().select(*keys) for e in envs]
+        steps = []
+        for cycle in range(7):
+            if cycle == 4:
+                obs[1] = envs[1].reset().select(*keys)
+            out = ctrl(torch.stack(obs))
+            if mode == "async":
+                assert ctrl._job is not None  # the next forecast runs while the envs step
+            steps.append(out.select("action", "ee_shift", ("ddp", "latent_pred"), ("ddp", "mode"),
+                                    ("ddp", "imagined")).clone())
+            obs = [envs[i].step(out[i].select("action", "ee_shift"))["next"].select(*keys) for i in range(2)]
+        ctrl.close()
+        outs[mode] = torch.stack(steps)
+    assert outs["inline"]["ddp", "imagined"].any()  # the comparison covers imagination
+    pred = outs["inline"]["ddp", "latent_pred"]  # [cycle, env, M, D]: NaN only before an episode's first forecast
+    assert torch.isnan(pred).flatten(2).all(-1).tolist() == [[True, True]] + [[False, False]] * 3 + [
+        [False, True]] + [[False, False]] * 2
+    for key in ("action", "ee_shift", ("ddp", "latent_pred"), ("ddp", "mode"), ("ddp", "imagined")):
+        torch.testing.assert_close(outs["async"][key], outs["inline"][key], rtol=0, atol=0, equal_nan=True)
+
+
+def test_async_forecast_error_surfaces_on_the_next_cycle(exp):
+    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True, async_forecast=True)
+    env = make_chunked_env(exp, seed=0)
+    td = ctrl(env.reset())
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("world model exploded")
+
+    ctrl.wait_forecast()
+    ctrl.model.imagine = broken  # the forecast already ran; break the next one
+    td = env.step(td)["next"]
+    td = ctrl(td)  # collects the good forecast, launches the broken one
+    with pytest.raises(RuntimeError, match="world model exploded"):
+        ctrl(env.step(td)["next"])
+    del ctrl.model.imagine

@@ -243,7 +243,7 @@ def test_forecast_samples_give_a_mean_forecast_and_its_spread(tiny_recipe):
     exp.model.imagine = lambda h, a, generator=None: calls.append(h.shape[0]) or imagine(h, a, generator=generator)
     env = make_chunked_env(exp, seed=0, overrides={})
     r = env.rollout(3, ctrl, break_when_any_done=False)
-    assert calls == [3, 3]  # K = 3 samples per forecast, one batched call
+    assert calls == [3, 3, 3]  # K = 3 samples per forecast, one batched call, made right after each chunk
     std = r["ddp", "latent_pred_std"]
     assert torch.isnan(std[0]).all() and (std[1:] > 0).all()  # no forecast at chunk 0; samples differ
     # a spread-scaled detector calibrates on such rollouts and reads the spread online
