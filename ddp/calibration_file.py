@@ -3,8 +3,8 @@
 ``ddp eval`` (and ``ddp detect --save``) writes ``<checkpoint stem>.calibration.json`` next to the
 checkpoint: the fitted statistic and threshold (the detector's ``calibration()``), the target
 false-alarm rate, how many ID episodes and which seeds produced it, and what it is valid for: a
-digest of the model's weights, the detector section and the ID env overrides. A later evaluation
-with the same three reuses it; anything else calibrates again and overwrites it. The file is plain
+digest of the model's weights, the detector section, the ID env overrides and the sampling setup
+(both schedulers' sections, the forecast samples). A later evaluation with the same four reuses it; anything else calibrates again and overwrites it. The file is plain
 JSON (written atomically); loading it runs no code.
 """
 
@@ -38,12 +38,15 @@ def model_digest(model: torch.nn.Module) -> str:
     return h.hexdigest()[:16]
 
 
-def _key(model_hash: str, detector: dict, id_env: dict, episodes: int, seed: int) -> dict:
-    return {"model": model_hash, "detector": detector, "id_env": id_env, "episodes": episodes, "seed": seed}
+def _key(model_hash: str, detector: dict, id_env: dict, episodes: int, seed: int, sampling: dict | None) -> dict:
+    return {"model": model_hash, "detector": detector, "id_env": id_env, "episodes": episodes, "seed": seed,
+            "sampling": sampling}
 
 
-def load_calibration(path, *, model_hash: str, detector: dict, id_env: dict, episodes: int, seed: int) -> dict | None:
-    """The saved calibration if ``path`` holds one made for exactly this model, detector and ID env; else None."""
+def load_calibration(path, *, model_hash: str, detector: dict, id_env: dict, episodes: int, seed: int,
+                     sampling: dict | None = None) -> dict | None:
+    """The saved calibration if ``path`` holds one made for exactly this model, detector, ID env and sampling
+    setup (the schedulers' sections, the forecast samples: fewer denoising steps change the scores); else None."""
     path = Path(path)
     if not path.is_file():
         return None
@@ -53,16 +56,16 @@ def load_calibration(path, *, model_hash: str, detector: dict, id_env: dict, epi
         return None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         return None
-    want = json.loads(results_json.dumps(_key(model_hash, detector, id_env, episodes, seed)))
+    want = json.loads(results_json.dumps(_key(model_hash, detector, id_env, episodes, seed, sampling)))
     if data.get("valid_for") != want:
         return None
     return data.get("calibration")
 
 
 def save_calibration(path, calibration: dict, *, model_hash: str, detector: dict, id_env: dict, episodes: int,
-                     seed: int, checkpoint: str | None = None) -> Path:
+                     seed: int, sampling: dict | None = None, checkpoint: str | None = None) -> Path:
     """Write the calibration atomically (temp file, fsync, rename)."""
     payload = {"format": FORMAT, "checkpoint": checkpoint,
-               "valid_for": _key(model_hash, detector, id_env, episodes, seed), "calibration": calibration}
+               "valid_for": _key(model_hash, detector, id_env, episodes, seed, sampling), "calibration": calibration}
     text = results_json.dumps(payload)
     return atomic_write(path, lambda f: f.write(text), binary=False)

@@ -141,13 +141,15 @@ def _detector_section(exp, protocol) -> dict:
 
 def _calibration(exp, detector, section: dict, *, seed: int, runs: dict) -> dict:
     """The detector's calibration: read from beside the checkpoint when it was made for this model,
-    detector and ID env, else fitted on ``eval.calibration_episodes`` ID rollouts and saved there."""
+    detector, ID env and sampling setup, else fitted on ``eval.calibration_episodes`` ID rollouts and saved there."""
     from ddp.calibration_file import calibration_path, load_calibration, model_digest, save_calibration
 
     cfg = exp.recipe.eval
     id_env = env_overrides(exp, get_protocol("id"), cfg.max_steps)
+    sampling = {"policy": exp.resolved["policy"]["scheduler"], "world_model": exp.resolved["world_model"]["scheduler"],
+                "forecast_samples": exp.recipe.controller.forecast_samples}
     key = dict(model_hash=model_digest(exp.model), detector=section, id_env=id_env,
-               episodes=cfg.calibration_episodes, seed=seed)
+               episodes=cfg.calibration_episodes, seed=seed, sampling=sampling)
     path = calibration_path(exp.checkpoint_path) if exp.checkpoint_path is not None else None
     saved = load_calibration(path, **key) if path is not None else None
     if saved is not None:

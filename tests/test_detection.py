@@ -115,7 +115,7 @@ def test_calibration_file_round_trips_and_is_bound_to_model_detector_and_env(tmp
     det.calibrate(episodes_from_scores(np.array([[np.nan, 0.1, 0.2], [np.nan, 0.3, 0.1], [np.nan, 0.2, 0.4],
                                                  [np.nan, 0.1, 0.3]])))
     key = dict(model_hash=model_digest(exp.model), detector={"name": "discrepancy", "alpha": 0.5}, id_env={"a": 1},
-               episodes=4, seed=7)
+               episodes=4, seed=7, sampling={"policy": {"num_inference_steps": 10}, "forecast_samples": 1})
     path = save_calibration(calibration_path(tmp_path / "last.pt"), det.calibration(), **key)
     assert path.name == "last.calibration.json"
     again = DiscrepancyDetector(DiscrepancyConfig(alpha=0.5, per_chunk=True))
@@ -124,7 +124,7 @@ def test_calibration_file_round_trips_and_is_bound_to_model_detector_and_env(tmp
     assert math.isnan(again.calibration()["reference"][0][0])  # stored as null, read back as NaN
     assert not again.needs_calibration
     for change in ({"seed": 8}, {"id_env": {"a": 2}}, {"detector": {"name": "discrepancy", "alpha": 0.1}},
-                   {"model_hash": "0" * 16}):
+                   {"model_hash": "0" * 16}, {"sampling": {"policy": {"num_inference_steps": 5}, "forecast_samples": 1}}):
         assert load_calibration(path, **{**key, **change}) is None, change
     with torch.no_grad():
         next(exp.model.parameters()).add_(1.0)
