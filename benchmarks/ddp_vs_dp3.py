@@ -20,7 +20,7 @@ from ddp import build
 from ddp.bench import compare
 
 RECIPES = [("paper sim", "recipes/base/ddp_sim.yaml"), ("Simple", "recipes/base/simple_ddp.yaml")]
-ROWS = ("obs_to_action_ms", "control_cycle_ms", "train_step_ms", "train_samples_per_s")
+ROWS = ("obs_to_action_ms", "controller_latency_ms", "control_cycle_ms", "train_step_ms", "train_samples_per_s")
 
 
 def main() -> None:
