@@ -110,6 +110,7 @@ def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
     store = ResultStore(suite.results_dir)
     first = store.load(suite.runs[0])
     assert first["protocols"]["id"]["episodes"] == 1 and first["train"]["steps"] == 2
+    assert first["code"]["ddp"] and len(first["code"].get("commit", "0" * 40)) == 40  # what to check out to redo it
     assert (suite_file.parent / "runs/suites/tiny_suite/near__ddp__seed0/log.txt").read_text().count("finished") == 1
 
     # a finished run is not run again; a missing, half-written or stale result is

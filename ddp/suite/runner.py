@@ -39,6 +39,27 @@ def _summary(protocol: dict) -> dict:
     return out
 
 
+def code_version() -> dict:
+    """Which code produced a result: the package version and, in a git checkout, the commit and whether
+    tracked files differed from it (results outlive sessions; this says what to check out to redo one)."""
+    import subprocess
+
+    import ddp
+
+    out: dict = {"ddp": ddp.__version__}
+    root = Path(ddp.__file__).resolve().parent.parent
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                               capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return out
+    if commit.returncode == 0:
+        out["commit"] = commit.stdout.strip()
+        out["dirty"] = bool(dirty.stdout.strip()) if dirty.returncode == 0 else None
+    return out
+
+
 def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None) -> dict:
     """Train and evaluate one run; its console output goes to its log file. Returns its result."""
     import torch
@@ -67,6 +88,7 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
         "episodes": report["episodes"],
         "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
         "wall_seconds": time.perf_counter() - t0,
+        "code": code_version(),
     }
 
 
