@@ -224,7 +224,8 @@ def cmd_suite(args) -> int:
     results = [done[r.run_id] for r in suite.runs if r.run_id in done]
     if not results:
         raise DDPError(f"no finished runs of suite {suite.name!r} in {suite.results_dir} yet")
-    paths = write_suite_report(results, suite.results_dir, f"suite {suite.name} ({len(results)}/{len(suite.runs)} runs)")
+    paths = write_suite_report(results, suite.results_dir, f"suite {suite.name} ({len(results)}/{len(suite.runs)} runs)",
+                               reference=suite.reference)
     print(paths[0].read_text(), end="")
     print(f"wrote {', '.join(str(p) for p in paths)}")
     return 0

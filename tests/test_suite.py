@@ -188,10 +188,31 @@ def test_aggregation_math(tmp_path):
     assert (tmp_path / "table.csv").read_text().splitlines()[0].startswith("method,protocol,a_mean,a_std")
 
 
+def test_reference_rows_sit_under_their_rows_and_average_the_same_tasks(tmp_path):
+    from ddp.suite.spec import load_reference
+
+    results = [_result("a", "ddp", 0, {"id": 1.0}), _result("b", "ddp", 0, {"id": 0.5}),
+               _result("a-x", "ddp", 0, {"id": 0.2}, bench="x"), _result("a", "dp3", 0, {"id": 0.9})]
+    ref = load_reference({"label": "paper", "values": {
+        "ddp": {"id": {"mw": {"a": 90, "b": 70, "c": 10, "avg": 12.5}, "x": {"a": 40}}}}}, source="s")
+    write_suite_report(results, tmp_path, "t", reference=ref)
+    md = (tmp_path / "table.md").read_text().splitlines()
+    row = md.index("| ddp | id | 100 [72, 100] (n=10) | 50 [24, 76] (n=10) | 20 [6, 51] (n=10) | 75 | 20 |")
+    # the task columns, then the mean of the published numbers over the suite's tasks (not the paper's 12.5)
+    assert md[row + 1] == "| ddp | id (paper) | 90 | 70 | 40 | 80 | 40 |"
+    assert md[row + 2].startswith("| dp3 | id |") and "(paper)" not in md[row + 2]  # no numbers: no row
+    table = json.loads((tmp_path / "table.json").read_text())
+    assert table["reference"]["cells"]["ddp|id|avg:mw"] == pytest.approx(0.8)
+    for bad in ({"values": {"ddp": {"id": {"mw": {"a": 130}}}}}, {"label": "p"}, "missing.yaml"):
+        with pytest.raises(RecipeError, match="reference|percentage"):
+            load_reference(bad, source="s")
+
+
 @pytest.mark.parametrize("name", ["metaworld_smoke", "metaworld_cpu", "adroit_cpu", "franka_cpu", "table1"])
 def test_shipped_suites_expand(name, monkeypatch):
     from conftest import ROOT
 
     monkeypatch.chdir(ROOT)  # suite paths are relative to the repository root
     suite = load_suite(ROOT / "suites" / f"{name}.yaml")
+    assert name == "franka_cpu" or suite.reference["values"]["ddp"]["id"]  # the paper's numbers beside ours
     assert suite.name == name and len(suite.runs) == len(suite.tasks) * len(suite.methods) * len(suite.seeds)

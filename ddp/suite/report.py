@@ -42,6 +42,34 @@ def _cell(rates: list[float], successes: int, episodes: int, seeds: list[int]) -
     return cell
 
 
+def reference_cells(table: dict, reference: dict | None) -> dict[str, float]:
+    """``{"method|protocol|column": rate}`` from a suite's reference (percent) for the table's rows and columns.
+
+    A task column reads ``values[method][protocol][benchmark][task]``, where a label ``<task>-<benchmark>``
+    (e.g. ``hammer-adroit``, beside MetaWorld's ``hammer``) reads ``<task>``. ``avg:<benchmark>`` is the
+    mean of the reference over the same tasks as the suite's average (absent unless it has them all), so a
+    suite of three tasks is not compared with the paper's ten-task average.
+    """
+    if not reference:
+        return {}
+    bench_of = {t: b for b, names in table["benchmarks"].items() for t in names}
+    out = {}
+    for m, p in table["rows"]:
+        by_bench = reference["values"].get(m, {}).get(p, {}) or {}
+        for t in table["tasks"]:
+            bench = bench_of[t]
+            name = t[: -len(bench) - 1] if t.endswith(f"-{bench}") else t
+            value = (by_bench.get(bench) or {}).get(name)
+            if value is not None:
+                out[f"{m}|{p}|{t}"] = float(value) / 100
+        for bench, names in table["benchmarks"].items():
+            cell = table["cells"].get(f"{m}|{p}|avg:{bench}")
+            have = cell["tasks"] if cell else names
+            if have and all(f"{m}|{p}|{t}" in out for t in have):
+                out[f"{m}|{p}|avg:{bench}"] = float(np.mean([out[f"{m}|{p}|{t}"] for t in have]))
+    return out
+
+
 def aggregate(results: list[dict]) -> dict:
     """``{"rows": [(method, protocol)], "tasks": [...], "benchmarks": {name: [tasks]}, "cells": {...}}``."""
     tasks = list(dict.fromkeys(r["task"] for r in results))
@@ -99,14 +127,20 @@ def _columns(table: dict) -> list[str]:
     return [*table["tasks"], *(f"avg:{b}" for b in table["benchmarks"])]
 
 
-def markdown(table: dict, title: str) -> str:
+def markdown(table: dict, title: str, reference: dict | None = None) -> str:
+    """The table; with a reference, each row that has published numbers is followed by a row of them."""
     cols = _columns(table)
+    ref = reference_cells(table, reference)
+    label = reference["label"] if reference else ""
     lines = [f"{title}: success rate in %, mean ± std over seeds (one seed: [95 % Wilson interval]); "
-             "n = episodes over all seeds", "",
-             "| method | protocol | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
+             "n = episodes over all seeds" + (f"; rows marked ({label}) are the published numbers" if ref else ""),
+             "", "| method | protocol | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
     for m, p in table["rows"]:
         cells = [format_cell(table["cells"].get(f"{m}|{p}|{c}")) for c in cols]
         lines.append(f"| {m} | {p} | " + " | ".join(cells) + " |")
+        if any(f"{m}|{p}|{c}" in ref for c in cols):
+            published = [f"{100 * ref[f'{m}|{p}|{c}']:.4g}" if f"{m}|{p}|{c}" in ref else "-" for c in cols]
+            lines.append(f"| {m} | {p} ({label}) | " + " | ".join(published) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -127,7 +161,9 @@ def plot(table: dict, path: Path, title: str) -> None:
             if c and "std" in c:
                 errs[0].append(100 * c["std"]), errs[1].append(100 * c["std"])
             elif c and "wilson95" in c:
-                errs[0].append(mean - 100 * c["wilson95"][0]), errs[1].append(100 * c["wilson95"][1] - mean)
+                # clipped at 0: at a rate of 0 or 1 the interval's end can round to a hair inside the mean
+                errs[0].append(max(0.0, mean - 100 * c["wilson95"][0]))
+                errs[1].append(max(0.0, 100 * c["wilson95"][1] - mean))
             else:
                 errs[0].append(0.0), errs[1].append(0.0)
         xs = np.arange(len(tasks)) + (i - (len(rows) - 1) / 2) * width
@@ -142,13 +178,16 @@ def plot(table: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def write_suite_report(results: list[dict], out_dir: str | Path, title: str) -> list[Path]:
-    """table.md, table.json, table.csv and table.png under ``out_dir``; returns their paths."""
+def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
+                       reference: dict | None = None) -> list[Path]:
+    """table.md, table.json, table.csv and table.png under ``out_dir``; returns their paths. A ``reference``
+    (the suite's published numbers) adds rows to table.md and a ``reference`` entry to table.json."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate(results)
-    (out / "table.md").write_text(markdown(table, title))
-    (out / "table.json").write_text(results_json.dumps({**table, "rows": [list(r) for r in table["rows"]]}))
+    (out / "table.md").write_text(markdown(table, title, reference))
+    extra = {"reference": {"label": reference["label"], "cells": reference_cells(table, reference)}} if reference else {}
+    (out / "table.json").write_text(results_json.dumps({**table, "rows": [list(r) for r in table["rows"]], **extra}))
     cols = _columns(table)
     with open(out / "table.csv", "w", newline="") as f:
         w = csv.writer(f)

@@ -33,7 +33,7 @@ from ddp.errors import RecipeError
 
 __all__ = ["RunSpec", "SuiteSpec", "load_suite"]
 
-KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "output_dir", "results_dir"}
+KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "output_dir", "results_dir", "reference"}
 
 
 @dataclass(frozen=True)
@@ -70,6 +70,32 @@ class SuiteSpec:
     results_dir: Path
     source: str = ""
     protocols: dict[str, list[str] | None] = field(default_factory=dict)
+    reference: dict | None = None  # {"label", "values": method -> protocol -> benchmark -> task | avg -> %}
+
+
+def load_reference(value, *, source: str) -> dict | None:
+    """A suite's ``reference`` (published numbers shown beside its results): a YAML file path or the mapping
+    itself, ``{label, values: method -> protocol -> benchmark -> task (or avg) -> percent}``."""
+    if value is None:
+        return None
+    from ddp.recipe import _read_yaml
+
+    where = "reference"
+    if isinstance(value, str):
+        if not Path(value).is_file():
+            raise RecipeError(f"reference file not found: {value}", source=source, key=where)
+        where, value = value, _read_yaml(Path(value), referenced_by=source)
+    if not isinstance(value, dict) or not isinstance(value.get("values"), dict):
+        raise RecipeError("must be {label, values: method -> protocol -> benchmark -> task -> percent}",
+                          source=source, key=where)
+    for m, protocols in value["values"].items():
+        for p, benches in (protocols or {}).items():
+            for b, tasks in (benches or {}).items():
+                for t, v in (tasks or {}).items():
+                    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 100:
+                        raise RecipeError(f"{m}.{p}.{b}.{t} must be a percentage in [0, 100], got {v!r}",
+                                          source=source, key=where)
+    return {"label": str(value.get("label", "reference")), "values": value["values"]}
 
 
 def _strings(value, *, key: str, source: str) -> list[str]:
@@ -183,7 +209,9 @@ def load_suite(path: str | Path) -> SuiteSpec:
                                     tuple(chosen) if chosen else None, episodes))
     runs.sort(key=lambda r: seeds.index(r.seed))  # seed-major: every task and method once before any repeats
     results_dir = Path(data.get("results_dir") or f"results/suites/{name}")
-    return SuiteSpec(name, runs, list(seeds), task_bench, list(methods), results_dir, source, method_protocols)
+    reference = load_reference(data.get("reference"), source=source)
+    return SuiteSpec(name, runs, list(seeds), task_bench, list(methods), results_dir, source, method_protocols,
+                     reference)
 
 
 def select(suite: SuiteSpec, *, tasks: list[str] | None = None, methods: list[str] | None = None,
