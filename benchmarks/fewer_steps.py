@@ -1,0 +1,47 @@
+"""Latency of DDP with fewer denoising steps against the eager DP3 baseline at DDIM-10, in one process.
+
+For each step count k, the recipe's policy and world model sample with DDIM-k; the baseline is the same
+recipe with the world model off at the recipe's own step count (DDIM-10). Success at each k is measured
+separately (``ddp eval ... --set policy.scheduler.num_inference_steps=k --set
+world_model.scheduler.num_inference_steps=k``); the README lists it.
+
+    python benchmarks/fewer_steps.py [--recipe recipes/metaworld/quickstart_ddp.yaml] [--steps 10,5,3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import torch
+
+from ddp import build
+from ddp.bench import baseline_of, bench
+
+ROWS = ("obs_to_action_ms", "controller_latency_ms", "control_cycle_ms")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--recipe", default="recipes/metaworld/quickstart_ddp.yaml")
+    parser.add_argument("--steps", default="10,5,3", help="comma-separated DDIM step counts")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=10)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    recipe = os.path.join(root, args.recipe)
+    base = bench(baseline_of(build(recipe)), repeats=args.repeats, train_steps=1)
+    print(f"{args.recipe}: batch 1, {args.threads} threads, medians of {args.repeats}; "
+          f"DP3 baseline (DDIM-10) obs->action {base['obs_to_action_ms']:.1f} ms")
+    print(f"| DDIM steps | {' | '.join(ROWS)} |")
+    print("|---|" + "---|" * len(ROWS))
+    for k in (int(s) for s in args.steps.split(",")):
+        exp = build(recipe, [f"policy.scheduler.num_inference_steps={k}", f"world_model.scheduler.num_inference_steps={k}"])
+        mine = bench(exp, repeats=args.repeats, train_steps=1)
+        cells = [f"{mine[r]:.1f} ({mine[r] / base['obs_to_action_ms']:.2f}x)" for r in ROWS]
+        print(f"| {k} | {' | '.join(cells)} |")
+
+
+if __name__ == "__main__":
+    main()
