@@ -60,6 +60,7 @@ CUP_WALL = 0.005
 CUP_HEIGHT = 0.06
 TEAPOT_HOME = (0.50, 0.12, 0.0)
 POUR_ANGLE = np.radians(115.0)
+UNTILT_RISE = 0.06  # metres the pot rises while it turns back upright after pouring
 POUR_LEAD = 0.03
 
 
@@ -80,7 +81,7 @@ class PourTask(FrankaTask):
     )
     max_episode_steps = 240
     subtasks = ("grasp the teapot (ends at gripper closure)", "pour into the cup (ends after an allotted time)")
-    oracle_version = 2
+    oracle_version = 3  # 3: the pot rises while it untilts and does not linger (the post-pour pose differs)
 
     def mjcf(self) -> tuple[str, str]:
         i, w, h, f = POT_INNER, POT_WALL, POT_HEIGHT, POT_FLOOR
@@ -210,6 +211,12 @@ class PourTask(FrankaTask):
                 z = CUP_HEIGHT + float(np.interp(tilt(rot), [0.7, 1.4], [high, low]))
                 return np.array([cup[0], cup[1], z]) - rot @ edge_in_hand(o)
 
+            def untilt_path(o, rot):
+                """Back upright while rising UNTILT_RISE: the pose after the pour is not the one before it,
+                which only the few poured balls in the cloud told apart (the policy tilted again)."""
+                upright = 1.0 - min(1.0, max(0.0, tilt(rot) / angle))
+                return pour_path(o, rot) + [0.0, 0.0, UNTILT_RISE * upright]
+
             tilted = lambda o: rot_x(angle) @ DOWN  # noqa: E731
             return [
                 Waypoint(lambda o: handle(o) + [0, 0, hover], -1.0, rot=lambda o: approach, tol=0.015, name="above"),
@@ -219,8 +226,7 @@ class PourTask(FrankaTask):
                          name="lift"),
                 Waypoint(None, 1.0, rot=lambda o: DOWN, path=pour_path, tol=0.012, name="to_cup"),
                 Waypoint(None, 1.0, rot=tilted, path=pour_path, tol=0.02, hold=pour_hold, name="pour"),
-                Waypoint(None, 1.0, rot=lambda o: DOWN, path=pour_path, tol=0.02, hold=int(uniform(rng, 6, 10)),
-                         name="untilt"),
+                Waypoint(None, 1.0, rot=lambda o: DOWN, path=untilt_path, tol=0.02, name="untilt"),
                 Waypoint(lambda o: home + grasp + [0, 0, carry - grasp[2]], 1.0, rot=lambda o: returning,
                          tol=0.015, name="back"),
                 Waypoint(lambda o: home + grasp + [0, 0, 0.004], 1.0, rot=lambda o: DOWN, tol=0.006, speed=0.01,
