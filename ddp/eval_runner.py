@@ -138,6 +138,9 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
         bar.close()
         collector.shutdown()
         env.close(raise_if_closed=False)
+        wait = getattr(controller, "wait_forecast", None)
+        if wait is not None:  # the last cycle's background forecast: nothing may run on the model after us
+            wait()
     return sorted(results, key=lambda r: r["seed"])
 
 

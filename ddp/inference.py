@@ -110,7 +110,7 @@ class DDPController(KeyedModule):
         track: bool = True,
         forecast_every_cycle: bool = False,
         forecast_samples: int = 1,
-        async_forecast: bool = False,
+        async_forecast: bool = True,
         seed: int = 0,
         on_nonfinite: str = "raise",
         hold: HoldSpec | None = None,
@@ -141,11 +141,9 @@ class DDPController(KeyedModule):
         self.subtasks = subtasks or [Subtask(target=0, trigger=None)]
         self.imagine = imagine
         self.track = track
-        # forecasts made right after each chunk is chosen (the D_R-I detector needs one every cycle),
-        # in the background thread with async_forecast; otherwise lazily, when imagination needs one
-        self.forecast_every_cycle = forecast_every_cycle or detector.needs_discrepancy
+        self._forecast_every_cycle = forecast_every_cycle
+        self._async_forecast = async_forecast
         self.forecast_samples = forecast_samples
-        self.async_forecast = async_forecast and self.forecast_every_cycle and model.has_world_model
         self._pool: ThreadPoolExecutor | None = None  # one background thread for the forecasts
         self._job: tuple[list[int], Future] | None = None  # the forecast being made while the chunk executes
         self.seed = seed
@@ -153,6 +151,23 @@ class DDPController(KeyedModule):
         self.hold = DELTAS if hold is None else hold
         self.obs_spec = ObservationSpec(model.obs_steps, model.agent_pos_dim, model.point_dim, num_points)
         self.reset()
+
+    @property
+    def forecast_every_cycle(self) -> bool:
+        """Forecasts are made right after each chunk is chosen (a D_R-I detector needs one every cycle);
+        otherwise lazily, when imagination needs one. Read each cycle: a detector swapped in later counts."""
+        return self._forecast_every_cycle or self.detector.needs_discrepancy
+
+    @property
+    def async_forecast(self) -> bool:
+        """Those forecasts are made in the background thread while the chunk executes."""
+        return self._async_forecast and self.forecast_every_cycle and self.model.has_world_model
+
+    def __getstate__(self):
+        """Copies and pickles (e.g. a collector moving the policy) leave the forecast thread behind."""
+        self.wait_forecast()
+        state = super().__getstate__() if hasattr(super(), "__getstate__") else self.__dict__
+        return {**state, "_pool": None, "_job": None}
 
     @property
     def device(self) -> torch.device:
@@ -198,6 +213,24 @@ class DDPController(KeyedModule):
             samples = samples.reshape(k, history.shape[0], *samples.shape[1:])
             return samples.mean(0), samples.std(0)
 
+    def _imagine_in_background(self, history: torch.Tensor, actions: torch.Tensor):
+        """The forecast on the background thread, with torch's CPU ops single-threaded while it runs.
+
+        torch's thread count is process-wide (libgomp's global setting for threads outside OpenMP). A
+        second multi-threaded OpenMP team in the process makes libgomp throttle its spinning for every
+        team: measured on 2 cores, the main thread's policy then ran 1.5-2.5x slower for the rest of the
+        process. With one thread here no second team exists; the count is restored when the forecast
+        ends, before the next cycle collects it (while it runs, the main thread executes the chunk).
+        """
+        threads = torch.get_num_threads()
+        if self.device.type == "cpu" and threads > 1:
+            torch.set_num_threads(1)
+        try:
+            return self._imagine(history, actions)
+        finally:
+            if torch.get_num_threads() != threads:
+                torch.set_num_threads(threads)
+
     def _store(self, envs: list[int], predicted: torch.Tensor, spread: torch.Tensor | None) -> None:
         for i, b in enumerate(envs):
             self.states[b].predicted, self.states[b].pending = predicted[i], None
@@ -241,12 +274,8 @@ class DDPController(KeyedModule):
             self._store(pending[0], *self._imagine(pending[1], pending[2]))
             return
         if self._pool is None:
-            # one OpenMP thread for the forecast: a second multi-threaded OpenMP team in this process makes
-            # libgomp throttle its spinning for every team, and the policy on the main thread then ran
-            # 1.5x slower on 2 cores (the forecast itself, 1.2x slower, is off the critical path)
-            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ddp-forecast",
-                                            initializer=torch.set_num_threads, initargs=(1,))
-        self._job = (pending[0], self._pool.submit(self._imagine, pending[1], pending[2]))
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ddp-forecast")
+        self._job = (pending[0], self._pool.submit(self._imagine_in_background, pending[1], pending[2]))
 
     def close(self) -> None:
         """Wait for a background forecast and stop its thread (also done when the controller is collected)."""

@@ -284,6 +284,38 @@ def test_async_forecast_equals_the_inline_one(exp, samples):
         torch.testing.assert_close(outs["async"][key], outs["inline"][key], rtol=0, atol=0, equal_nan=True)
 
 
+def test_background_forecast_keeps_the_thread_count_copies_and_follows_a_swapped_detector(exp):
+    import copy
+    import threading
+
+    threads, before = 2, torch.get_num_threads()  # the tests run single-threaded: the forecast drops to 1
+    torch.set_num_threads(threads)
+    try:
+        ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
+        env = make_chunked_env(exp, seed=0)
+        td = ctrl(env.reset())
+        ctrl.wait_forecast()
+        seen = []  # single-threaded only while the forecast ran: here, and in threads started later
+        later = threading.Thread(target=lambda: seen.append(torch.get_num_threads()))
+        later.start()
+        later.join()
+        assert torch.get_num_threads() == threads and seen == [threads]
+    finally:
+        torch.set_num_threads(before)
+    clone = copy.deepcopy(ctrl)  # e.g. a collector moving the policy: the thread stays behind
+    assert clone._pool is None and clone._job is None
+    ctrl.close()
+    # forecasting every cycle is read each cycle: a D_R-I detector swapped in later gets its forecasts
+    lazy = exp.make_controller(detector={"name": "never"}, tracker=False)
+    assert not lazy.forecast_every_cycle and not lazy.async_forecast
+    lazy.detector = exp.make_controller(detector={"name": "discrepancy", "tau": 1.0}).detector
+    assert lazy.forecast_every_cycle and lazy.async_forecast
+    td = lazy(env.reset())
+    td = lazy(env.step(td)["next"])
+    assert not torch.isnan(td["ddp", "latent_pred"]).any()
+    lazy.close()
+
+
 def test_async_forecast_error_surfaces_on_the_next_cycle(exp):
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True, async_forecast=True)
     env = make_chunked_env(exp, seed=0)

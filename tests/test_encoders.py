@@ -203,5 +203,8 @@ def test_point_blocks_give_the_unblocked_latents_and_gradients(block):
         grads.append(torch.cat([p.grad.flatten() for p in enc.parameters()]))
     torch.testing.assert_close(outs[1], outs[0], rtol=0, atol=1e-6)
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-4, atol=1e-5)  # summed in another order
+    for empty in ((0, 2), (5, 0)):  # no frames at all: an empty latent of the right shape, blocked or not
+        assert blocked.encode_points(torch.randn(*empty, N_POINTS, 3)).shape == (*empty, 64)
+        assert plain.encode_points(torch.randn(*empty, N_POINTS, 3)).shape == (*empty, 64)
     with pytest.raises(RecipeError, match="points_per_block must be >= 0"):
         build("dp3", {"points_per_block": -1})

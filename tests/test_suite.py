@@ -203,8 +203,15 @@ def test_reference_rows_sit_under_their_rows_and_average_the_same_tasks(tmp_path
     assert md[row + 2].startswith("| dp3 | id |") and "(paper)" not in md[row + 2]  # no numbers: no row
     table = json.loads((tmp_path / "table.json").read_text())
     assert table["reference"]["cells"]["ddp|id|avg:mw"] == pytest.approx(0.8)
-    for bad in ({"values": {"ddp": {"id": {"mw": {"a": 130}}}}}, {"label": "p"}, "missing.yaml"):
-        with pytest.raises(RecipeError, match="reference|percentage"):
+    # a suite averaging exactly the reference's tasks shows the reference's own average
+    exact = load_reference({"values": {"ddp": {"id": {"mw": {"a": 90, "b": 70, "avg": 81}}}}}, source="s")
+    write_suite_report(results, tmp_path / "exact", "t", reference=exact)
+    assert "| ddp | id (reference) | 90 | 70 | - | 81 | - |" in (tmp_path / "exact" / "table.md").read_text()
+    empty = load_reference({"values": {"ddp": None}}, source="s")  # nothing for a method: no rows, no crash
+    write_suite_report(results, tmp_path / "empty", "t", reference=empty)
+    for bad in ({"values": {"ddp": {"id": {"mw": {"a": 130}}}}}, {"label": "p"}, "missing.yaml",
+                {"values": {"ddp": {"id": {"mw": 90}}}}, {"values": {"ddp": ["id"]}}):
+        with pytest.raises(RecipeError, match="reference|percentage|mapping"):
             load_reference(bad, source="s")
 
 

@@ -44,9 +44,9 @@ class DP3EncoderConfig:
     use_layernorm: bool = True  # LayerNorm after each PointNet linear
     final_norm: Literal["layernorm", "none"] = "layernorm"
     use_color: bool = False  # True: points are xyz+rgb (6 channels)
-    # The per-point MLP runs on blocks of about this many points (whole frames) so that its activations
-    # stay in the CPU cache: 2-3x faster encoding on CPU at equal results (rows are independent; only
-    # float rounding differs). 0: all points at once (the plain DP3 forward).
+    # On CPU the per-point MLP runs on blocks of about this many points (whole frames) so that its
+    # activations stay in the cache: 2-3x faster encoding at equal results (rows are independent; only
+    # float rounding differs). 0: all points at once (the plain DP3 forward, always used on GPUs).
     points_per_block: int = 2048
 
     def __post_init__(self) -> None:
@@ -114,11 +114,12 @@ class DP3Encoder(KeyedModule):
         points = point_cloud[..., : self.point_channels]
         frames = points.reshape(-1, *points.shape[-2:])
         block = max(1, self.config.points_per_block // max(1, points.shape[-2]))
-        if self.config.points_per_block == 0 or frames.shape[0] <= block:
+        # blocking pays on CPU caches; on a GPU it would only split one launch into many
+        if self.config.points_per_block == 0 or frames.shape[0] <= block or points.device.type != "cpu":
             pooled = self.pointnet(frames).amax(dim=-2)
         else:  # cache blocking: each block of frames goes through the whole MLP and the max-pool at once
             pooled = torch.cat([self.pointnet(part).amax(dim=-2) for part in frames.split(block)])
-        return self.projection(pooled).reshape(*points.shape[:-2], -1)
+        return self.projection(pooled).reshape(*points.shape[:-2], self.config.out_channels)
 
     def encode(self, point_cloud: Tensor, agent_pos: Tensor) -> Tensor:
         """O = cat(PointNet(point_cloud), MLP(agent_pos)): ``[*, P, C], [*, D] -> [*, out_dim]``."""

@@ -47,15 +47,16 @@ def reference_cells(table: dict, reference: dict | None) -> dict[str, float]:
 
     A task column reads ``values[method][protocol][benchmark][task]``, where a label ``<task>-<benchmark>``
     (e.g. ``hammer-adroit``, beside MetaWorld's ``hammer``) reads ``<task>``. ``avg:<benchmark>`` is the
-    mean of the reference over the same tasks as the suite's average (absent unless it has them all), so a
-    suite of three tasks is not compared with the paper's ten-task average.
+    reference's own ``avg`` where the suite averages the very tasks it lists, else the mean of its numbers
+    over the suite's tasks (absent unless it has them all): a suite of three tasks is not compared with a
+    ten-task average.
     """
     if not reference:
         return {}
     bench_of = {t: b for b, names in table["benchmarks"].items() for t in names}
     out = {}
     for m, p in table["rows"]:
-        by_bench = reference["values"].get(m, {}).get(p, {}) or {}
+        by_bench = (reference["values"].get(m) or {}).get(p) or {}
         for t in table["tasks"]:
             bench = bench_of[t]
             name = t[: -len(bench) - 1] if t.endswith(f"-{bench}") else t
@@ -65,7 +66,14 @@ def reference_cells(table: dict, reference: dict | None) -> dict[str, float]:
         for bench, names in table["benchmarks"].items():
             cell = table["cells"].get(f"{m}|{p}|avg:{bench}")
             have = cell["tasks"] if cell else names
-            if have and all(f"{m}|{p}|{t}" in out for t in have):
+            if not have or not all(f"{m}|{p}|{t}" in out for t in have):
+                continue
+            published = by_bench.get(bench) or {}
+            tasks = {k for k in published if k != "avg"}
+            named = {t[: -len(bench) - 1] if t.endswith(f"-{bench}") else t for t in have}
+            if "avg" in published and named == tasks:  # the very tasks the paper averaged: its own number
+                out[f"{m}|{p}|avg:{bench}"] = float(published["avg"]) / 100
+            else:
                 out[f"{m}|{p}|avg:{bench}"] = float(np.mean([out[f"{m}|{p}|{t}"] for t in have]))
     return out
 

@@ -48,6 +48,8 @@ def code_version() -> dict:
 
     out: dict = {"ddp": ddp.__version__}
     root = Path(ddp.__file__).resolve().parent.parent
+    if not (root / ".git").exists():  # an installed package: a git repository above it is not its source
+        return out
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10)
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
@@ -133,15 +135,20 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
 
             per = threads or max(1, (os.cpu_count() or 1) // workers)
             # several processes share the cores: OpenMP threads that spin between ops would steal them
-            # (read by each spawned worker when it loads torch; a value the user set is kept)
+            # (read by each spawned worker when it loads torch; a value the user set is kept; restored after)
+            policy = os.environ.get("OMP_WAIT_POLICY")
             os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-            with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                futures = {}
-                for run in todo:
-                    echo(f"queued {run.run_id} ({per} threads; log: {run.recipe['train']['output_dir']}/log.txt)")
-                    futures[pool.submit(execute_run, run, per)] = run
-                for fut in as_completed(futures):
-                    finished(futures[fut], fut.result())
+            try:
+                with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+                    futures = {}
+                    for run in todo:
+                        echo(f"queued {run.run_id} ({per} threads; log: {run.recipe['train']['output_dir']}/log.txt)")
+                        futures[pool.submit(execute_run, run, per)] = run
+                    for fut in as_completed(futures):
+                        finished(futures[fut], fut.result())
+            finally:
+                if policy is None:
+                    os.environ.pop("OMP_WAIT_POLICY", None)
     finally:
         bar.close()
     return done

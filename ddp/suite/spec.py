@@ -88,10 +88,18 @@ def load_reference(value, *, source: str) -> dict | None:
     if not isinstance(value, dict) or not isinstance(value.get("values"), dict):
         raise RecipeError("must be {label, values: method -> protocol -> benchmark -> task -> percent}",
                           source=source, key=where)
-    for m, protocols in value["values"].items():
-        for p, benches in (protocols or {}).items():
-            for b, tasks in (benches or {}).items():
-                for t, v in (tasks or {}).items():
+    def mapping(node, path: str) -> dict:
+        if node is None:
+            return {}
+        if not isinstance(node, dict):
+            raise RecipeError(f"{path} must be a mapping (method -> protocol -> benchmark -> task -> percent), "
+                              f"got {node!r}", source=source, key=where)
+        return node
+
+    for m, protocols in mapping(value["values"], "values").items():
+        for p, benches in mapping(protocols, m).items():
+            for b, tasks in mapping(benches, f"{m}.{p}").items():
+                for t, v in mapping(tasks, f"{m}.{p}.{b}").items():
                     if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 100:
                         raise RecipeError(f"{m}.{p}.{b}.{t} must be a percentage in [0, 100], got {v!r}",
                                           source=source, key=where)
