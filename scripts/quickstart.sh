@@ -2,7 +2,7 @@
 # Install ddp (with MetaWorld) and run the quickstart: scripted-expert demos on
 # MetaWorld drawer-open, train DDP and the DP3 baseline (CPU-sized), evaluate
 # both in distribution and under the paper's OOD displacement, print the table.
-# About 27 minutes on a 2-core CPU. Extra arguments go to `ddp run`
+# About 14 minutes on a 2-core CPU. Extra arguments go to `ddp run`
 # (e.g. --episodes 10, --set train.max_steps=400).
 set -euo pipefail
 cd "$(dirname "$0")/.."
