@@ -377,7 +377,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS", help="run each run as a Ray task: on a local Ray started here (--ray) or a cluster (--ray ADDRESS, e.g. ray://head:10001 or auto); needs the ray extra")
     p.add_argument("--gpus-per-run", type=float, default=0.0, help="with --ray: GPUs each run asks for (default 0)")
     p.add_argument("--report", action="store_true", help="only aggregate the stored results (run nothing)")
-    p.add_argument("--tasks", help="comma-separated task labels to run (default: all)")
+    p.add_argument("--tasks", help="comma-separated task labels to run (default: all; the table always covers every stored run)")
     p.add_argument("--methods", help="comma-separated method labels to run (default: all)")
     p.add_argument("--seeds", help="comma-separated seeds to run (default: all); runs go seed by seed")
     p.add_argument("--dry-run", action="store_true", help="list the runs and exit")
