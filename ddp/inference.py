@@ -175,8 +175,13 @@ class DDPController(KeyedModule):
         return next(self.model.parameters()).device
 
     def reset(self) -> None:
-        self.wait_forecast()
-        self._job = None  # a forecast for the previous episodes is dropped
+        job, self._job = getattr(self, "_job", None), None  # a forecast for the previous episodes is dropped
+        error = job[1].exception() if job is not None else None  # waits for it
+        if error is not None:
+            import warnings
+
+            warnings.warn(f"controller: the last background world-model forecast failed and was dropped at "
+                          f"reset: {error!r}", RuntimeWarning, stacklevel=2)
         self.states: list[EnvState] = []
         self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
         self.forecast_generator = torch.Generator(device=self.device).manual_seed(self.seed + FORECAST_STREAM)

@@ -330,4 +330,7 @@ def test_async_forecast_error_surfaces_on_the_next_cycle(exp):
     td = ctrl(td)  # collects the good forecast, launches the broken one
     with pytest.raises(RuntimeError, match="world model exploded"):
         ctrl(env.step(td)["next"])
+    td = ctrl(env.reset())  # launches another broken forecast; a reset says it drops it
+    with pytest.warns(RuntimeWarning, match="forecast failed and was dropped at reset"):
+        ctrl.reset()
     del ctrl.model.imagine
