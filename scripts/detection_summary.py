@@ -6,7 +6,8 @@ within one chunk of the first visible chunk, and the ID test episodes with a fal
 import json, sys
 files = sys.argv[1:]
 reps = [(f.split('/')[-1].replace('.json',''), json.load(open(f))) for f in files]
-scores = [r["score"] for r in reps[0][1]["rows"] if "error" not in r]
+reps = [(n, rep) for n, rep in reps if "rows" in rep and "disturbances" in rep]  # ddp detect reports only
+scores = list(dict.fromkeys(r["score"] for _, rep in reps for r in rep["rows"] if "error" not in r))
 head = "| score | " + " | ".join(f"{n} / {d}" for n, rep in reps for d in rep["disturbances"]) + " |"
 lines = [head, "|---|" + "---|" * (len(head.split("|")) - 3)]
 for sc in scores:
