@@ -272,11 +272,12 @@ class DDPController(KeyedModule):
 
     def _forecast_next(self) -> None:
         """The next cycle's forecast, made now: inline, or in the background thread (``async_forecast``)."""
-        pending = self._pending(list(range(len(self.states))))
-        if pending is None:
-            return
+        envs = list(range(len(self.states)))
         if not self.async_forecast:
-            self._store(pending[0], *self._imagine(pending[1], pending[2]))
+            self._forecast(envs)
+            return
+        pending = self._pending(envs)
+        if pending is None:
             return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ddp-forecast")
