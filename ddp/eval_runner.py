@@ -167,9 +167,12 @@ def _summarise(traj, env_index: int, seed: int, latents: bool = False) -> dict:
         "chunks": int(traj.batch_size[0]),
         "first_success_chunk": int(success.nonzero()[0]) if bool(success.any()) else None,
     }
-    for key in ("mode", "imagined", "discrepancy", "score"):
+    for key in ("mode", "imagined", "discrepancy", "score", "subtask"):
         if ("ddp", key) in traj.keys(True):
             out[key] = traj.get(("ddp", key)).reshape(-1).float().tolist()
+    if "ee_shift" in traj.keys():  # the controller's tracking (+Delta p) and recovery (-Delta p) shifts, per chunk
+        shifts = traj.get("ee_shift").reshape(-1, 3)
+        out["ee_shift"] = [[round(float(x), 4) for x in row] for row in shifts]
     disturbed = _disturbed(traj)
     if disturbed is not None:
         out["disturbed"] = disturbed

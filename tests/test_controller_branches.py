@@ -137,6 +137,30 @@ def test_gripper_closure_trigger_ends_the_subtask_when_the_fingers_close(tiny_re
     assert all(s == [0.0] * 3 for i, s in enumerate(shifts(r)) if i != 2)
 
 
+def _fingers(widths):
+    """agent_pos frames [M, 9] (DP3's layout) whose finger distance is each of ``widths``."""
+    pos = torch.zeros(len(widths), 9)
+    pos[:, 3], pos[:, 6] = torch.tensor(widths) / 2, -torch.tensor(widths) / 2
+    return {"agent_pos": pos}
+
+
+def test_gripper_closure_settled_below_fires_on_a_grasp_wider_than_width_below():
+    from ddp.triggers.gripper_closure import GripperClosureConfig, GripperClosureTrigger
+
+    plain = GripperClosureTrigger(GripperClosureConfig())
+    settled = GripperClosureTrigger(GripperClosureConfig(settled_below=0.09))
+    holding_mug = _fingers([0.0562, 0.0560])  # MetaWorld coffee-pull: fingers stopped on the mug at 0.056 m
+    assert not plain.fired(holding_mug, 8, 8)  # the plain width threshold never sees this grasp
+    assert settled.fired(holding_mug, 8, 8)
+    assert not settled.fired(_fingers([0.070, 0.062]), 8, 8)  # still closing: not yet a grasp
+    assert not settled.fired(_fingers([0.100, 0.100]), 8, 8)  # open and still
+    assert not settled.fired(holding_mug, 0, 0)  # min_chunks
+    assert settled.fired(_fingers([0.050, 0.040]), 8, 8) and plain.fired(_fingers([0.050, 0.040]), 8, 8)
+    assert not settled.fired(_fingers([0.056]), 8, 8)  # one frame: no motion to judge, width_below only
+    with pytest.raises(ValueError, match="settled_below"):
+        GripperClosureConfig(settled_below=0.04)
+
+
 # --------------------------------------------------------------------------- 3. oracle snap-back
 @pytest.mark.parametrize("trigger", [{"name": "chunk_index", "chunk": 3}, {"name": "timer", "chunks": 1}, None])
 def test_oracle_snapback_recovers_at_its_fixed_chunk_whatever_the_triggers_say(tiny_recipe, trigger):

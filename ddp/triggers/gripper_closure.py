@@ -13,15 +13,25 @@ class GripperClosureConfig:
     left: tuple[int, int] = (3, 6)  # agent_pos slices of the two finger positions (DP3's 9-d layout)
     right: tuple[int, int] = (6, 9)
     min_chunks: int = 1  # ignore a closed gripper in the subtask's first chunks
+    # A grasp on an object wider than width_below (MetaWorld's mug holds the fingers at 0.056 m): also fire
+    # when the width is below settled_below and the fingers stopped moving (width change under settle_tol
+    # between the last two frames). None: only width_below counts.
+    settled_below: float | None = None
+    settle_tol: float = 0.002
 
     def __post_init__(self):
         if self.width_below <= 0:
             raise ValueError(f"width_below must be > 0; got {self.width_below}")
+        if self.settled_below is not None and self.settled_below <= self.width_below:
+            raise ValueError(f"settled_below must be > width_below ({self.width_below}); got {self.settled_below}")
+        if self.settle_tol <= 0:
+            raise ValueError(f"settle_tol must be > 0; got {self.settle_tol}")
 
 
 @register("trigger", "gripper_closure", config=GripperClosureConfig)
 class GripperClosureTrigger:
-    """Fires when the distance between the finger positions in ``agent_pos`` drops below a width."""
+    """Fires when the distance between the finger positions in ``agent_pos`` drops below ``width_below``, or
+    (with ``settled_below``) when the fingers have stopped on an object narrower than that."""
 
     def __init__(self, config: GripperClosureConfig):
         self.config = config
@@ -33,4 +43,10 @@ class GripperClosureTrigger:
     def fired(self, obs, chunk_index: int, subtask_chunks: int) -> bool:
         if subtask_chunks < self.config.min_chunks:
             return False
-        return self.width(obs["agent_pos"][-1]) < self.config.width_below
+        c, agent_pos = self.config, obs["agent_pos"]
+        width = self.width(agent_pos[-1])
+        if width < c.width_below:
+            return True
+        if c.settled_below is None or agent_pos.dim() < 2 or agent_pos.shape[0] < 2 or width >= c.settled_below:
+            return False
+        return abs(width - self.width(agent_pos[-2])) < c.settle_tol  # closed on an object, no longer moving
