@@ -164,6 +164,64 @@ def test_controller_never_leaves_id_on_the_forecast_less_first_chunk(tiny_recipe
     assert torch.isnan(r["ddp", "latent_pred"][0]).all() and torch.isfinite(r["ddp", "latent_pred"][1]).all()
 
 
+def test_the_default_detector_flags_a_displacement_at_its_first_observable_chunk(tiny_recipe):
+    """The whole detection path on the synthetic env, with a world model that forecasts the ID scene (its real
+    latents, recorded, plus small noise): the controller pairs each observation with the forecast made for
+    it, the recipes' default statistic (point dims, newest frame, per-chunk scale) is calibrated on ID
+    episodes at alpha 0.05, and the cube moved at the start of chunk 1 is flagged at chunk 2, the first
+    observation that shows it; nothing is flagged before, nor in fresh ID runs. A forecast paired with the
+    wrong cycle, or a score off the point-cloud dims, fails this."""
+    from ddp.evaluate import make_chunked_env
+
+    detector = {"name": "discrepancy", "alpha": 0.05, "dims": "point", "frames": "newest", "per_chunk": True}
+    exp = displaced_exp(tiny_recipe, detector=detector)
+    chunks, m, n = 8, exp.model.obs_steps, exp.model.action_steps
+    # the ID scene's real latent windows, chunk by chunk (the base policy, forecasting every cycle)
+    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
+    ctrl.reset()
+    r = make_chunked_env(exp, seed=0, overrides={"displacement": False}).rollout(chunks, ctrl, break_when_any_done=False)
+    ctrl.close()
+    id_windows = r["ddp", "latent_real"].double()  # [chunks, M, L]
+    noise = torch.Generator().manual_seed(0)
+    sigma = 1e-3 * float(id_windows.std())
+
+    def forecast_of(chunk):  # what an exact ID world model forecasts for ``chunk``, up to small noise
+        return id_windows[min(chunk, chunks - 1)] + sigma * torch.randn(m, id_windows.shape[-1], generator=noise,
+                                                                         dtype=torch.float64)
+
+    calibration = []
+    for _ in range(40):
+        pred = torch.stack([torch.full_like(id_windows[0], float("nan"))] + [forecast_of(c) for c in range(1, chunks)])
+        calibration.append({"latent_real": id_windows.numpy(), "latent_pred": pred.numpy()})
+
+    def rollout(displaced: bool):
+        ctrl = exp.make_controller()
+        ctrl.detector.calibrate(calibration, point_dims=exp.model.point_dims)
+        made = []  # forecasts made so far: the one made at cycle t is for cycle t + 1
+
+        def imagine(history, actions, generator=None):
+            made.append(history.shape[0])
+            future = torch.zeros(history.shape[0], n, history.shape[-1], dtype=history.dtype)
+            future[:, -m:] = forecast_of(len(made)).to(history.dtype)
+            return future
+
+        ctrl.model.imagine = imagine
+        ctrl.reset()
+        env = make_chunked_env(exp, seed=0, overrides={} if displaced else {"displacement": False})
+        try:
+            out = env.rollout(chunks, ctrl, break_when_any_done=False)
+        finally:
+            ctrl.close()
+            del ctrl.model.imagine
+        return out
+
+    assert rollout(displaced=False)["ddp", "mode"].tolist() == [0] * chunks
+    out = rollout(displaced=True)
+    assert out["ddp", "mode"].tolist()[:3] == [0, 0, 1]  # seen at chunk 2, flagged at chunk 2
+    score = out["ddp", "score"].tolist()
+    assert math.isnan(score[0]) and score[2] > 100 * score[1]  # the move dwarfs the ID residual
+
+
 def test_nan_latents_flag_ood_and_a_false_alarm_returns_to_reality(tiny_recipe):
     from ddp.evaluate import make_chunked_env
 
