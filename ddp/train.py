@@ -113,9 +113,10 @@ class TrainResult:
     loss_bc: float
     loss_wm: float  # lambda * L_WM (the loss_* terms sum to the objective)
     wm_error: float  # L_WM unweighted
-    seconds: float
+    seconds: float  # this call's training time
     samples_per_second: float
     checkpoint: Path
+    total_seconds: float = 0.0  # training time over every call that built the checkpoint (resumes included)
 
 
 class _Objective(torch.nn.Module):
@@ -247,6 +248,10 @@ class Trainer:
             )
         sums = {"loss": 0.0, "loss_bc": 0.0, "loss_wm": 0.0, "wm_error": 0.0}
         count, last_means = 0, {k: float("nan") for k in sums}  # no step in this call (a finished run resumed)
+        earlier_seconds = 0.0  # training time of the calls before this one (from the checkpoint)
+        if state is not None:
+            earlier_seconds = float(state.get("train_seconds", 0.0))
+            last_means.update({k: float(v) for k, v in state.get("losses", {}).items() if k in last_means})
         t0, samples = time.perf_counter(), 0
         bar = tqdm(total=total, initial=step, disable=not (self.progress and ranks.main), desc=exp.recipe.name,
                    unit="step")
@@ -275,6 +280,8 @@ class Trainer:
                 "epoch": epoch,
                 "batch_in_epoch": batch_in_epoch,
                 "recipe": exp.to_yaml(),
+                "train_seconds": earlier_seconds + time.perf_counter() - t0,
+                "losses": dict(last_means),  # the last logged window's loss terms
             }
             if ema is not None:
                 payload["ema"] = ema.state_dict()
@@ -352,6 +359,7 @@ class Trainer:
             steps=step, epochs=epoch, loss=final["loss"], loss_bc=final["loss_bc"], loss_wm=final["loss_wm"],
             wm_error=final["wm_error"],
             seconds=seconds, samples_per_second=samples / max(seconds, 1e-9), checkpoint=path,
+            total_seconds=earlier_seconds + seconds,
         )
 
     def _logger(self):

@@ -5,7 +5,10 @@ within one chunk of the first visible chunk, and the ID test episodes with a fal
 """
 import json, sys
 files = sys.argv[1:]
-reps = [(f.split('/')[-1].replace('.json',''), json.load(open(f))) for f in files]
+def label(f):  # the file's name, or its folder's for ddp detect's own detect.json
+    parts = f.split('/')
+    return parts[-2] if parts[-1] == 'detect.json' and len(parts) > 1 else parts[-1].replace('.json', '')
+reps = [(label(f), json.load(open(f))) for f in files]
 reps = [(n, rep) for n, rep in reps if "rows" in rep and "disturbances" in rep]  # ddp detect reports only
 scores = list(dict.fromkeys(r["score"] for _, rep in reps for r in rep["rows"] if "error" not in r))
 head = "| score | " + " | ".join(f"{n} / {d}" for n, rep in reps for d in rep["disturbances"]) + " |"

@@ -54,6 +54,20 @@ def test_per_chunk_normalisation_and_cusum():
     assert math.isnan(cusum[0]) and cusum[1:].tolist() == [1.0, 1.0, 3.0]  # max(0, S + s - drift)
 
 
+def test_per_chunk_scale_is_the_chosen_id_quantile_of_each_phase():
+    rng = np.random.default_rng(1)
+    scores = rng.gamma(2.0, 1.0, size=(20, 5)) * np.array([1.0, 1.0, 8.0, 8.0, 1.0])
+    scores[:, 0] = np.nan
+    eps = episodes_from_scores(scores)
+    for q in (0.5, 0.9):
+        spec = ScoreSpec(per_chunk=True, window=0, chunk_quantile=q)
+        cal = fit_calibration(eps, spec, alpha=0.2, fit_fraction=0.5)
+        expected = np.quantile(scores[:10, 1:], q, axis=0)  # the 10 fitting episodes, chunk by chunk
+        assert np.allclose(cal.chunk_scale[1:], expected)
+    with pytest.raises(ValueError, match="chunk_quantile"):
+        ScoreSpec(per_chunk=True, chunk_quantile=1.0)
+
+
 def test_conformal_threshold_rule():
     assert conformal_threshold([3.0, 1.0, 2.0], 0.5) == 2.0  # ceil(4 x 0.5) = 2nd smallest
     assert conformal_threshold(list(range(1, 20)), 0.05) == 19.0  # n = 19: the largest
@@ -301,6 +315,7 @@ def test_forecast_samples_give_a_mean_forecast_and_its_spread(tiny_recipe):
     exp.model.imagine = lambda h, a, generator=None: calls.append(h.shape[0]) or imagine(h, a, generator=generator)
     env = make_chunked_env(exp, seed=0, overrides={})
     r = env.rollout(3, ctrl, break_when_any_done=False)
+    ctrl.wait_forecast()  # the last chunk's forecast runs in the background (async_forecast)
     assert calls == [3, 3, 3]  # K = 3 samples per forecast, one batched call, made right after each chunk
     std = r["ddp", "latent_pred_std"]
     assert torch.isnan(std[0]).all() and (std[1:] > 0).all()  # no forecast at chunk 0; samples differ

@@ -63,6 +63,11 @@ def test_resume_after_interruption_equals_uninterrupted_run(tiny_recipe, tmp_pat
         assert torch.equal(v, reference[k]), k
     ema = load_checkpoint(tmp_path / "resumed/last.pt")["ema"]
     assert all(torch.equal(ema[k], ref_ema[k]) for k in ref_ema)
+    # the training time adds up over the two calls; a finished run resumed again keeps its record
+    first = load_checkpoint(tmp_path / "resumed/last.pt")["train_seconds"]
+    assert res2.total_seconds >= first > res2.seconds > 0  # the first call's time is in both
+    res3 = build(tiny_recipe).train(output_dir=tmp_path / "resumed", progress=False)
+    assert res3.steps == res.steps and res3.total_seconds >= first and res3.loss == pytest.approx(res2.loss)
 
 
 def test_checkpoint_round_trip_gives_identical_outputs(tiny_recipe, tmp_path):

@@ -36,6 +36,7 @@ class DiscrepancyConfig:
     whiten: bool = False  # residuals divided per dim by their ID std (calibrated)
     per_chunk: bool = False  # the score divided by the ID score of the task phase (chunk +- window)
     window: int = 1  # per_chunk: neighbouring chunks pooled on each side
+    chunk_quantile: float = 0.5  # per_chunk: the ID quantile of the phase's scores divided by (0.5: median)
     cusum: bool = False  # accumulate evidence over chunks (CUSUM on the normalised score)
     drift: float = 1.0  # cusum: subtracted each chunk, in units of the ID median score
     spread: bool = False  # residuals scaled by the forecast samples' spread (controller.forecast_samples > 1)
@@ -53,7 +54,7 @@ class DiscrepancyConfig:
     @property
     def spec(self) -> ScoreSpec:
         return ScoreSpec(self.dims, self.frames, self.whiten, self.per_chunk, self.window, self.cusum, self.drift,
-                         self.spread)
+                         self.spread, self.chunk_quantile)
 
 
 @register("detector", "discrepancy", config=DiscrepancyConfig)

@@ -16,9 +16,11 @@ same two latent windows (``real``, ``pred``: ``[..., M, D]``):
   K > 1; a diffusion model's own uncertainty), floored by the median ID
   spread of that dim so a confident dim cannot blow up;
 * ``per_chunk``: the score divided by the ID score typical of the task's
-  phase (the median at chunks ``c - window .. c + window``), so a contact
-  phase with large ID errors does not set the threshold for an approach
-  with small ones;
+  phase (the median at chunks ``c - window .. c + window``, or another
+  ``chunk_quantile``), so a contact phase with large ID errors does not set
+  the threshold for an approach with small ones; a high quantile (0.9)
+  divides by the phase's ID tail instead of its middle, which evens out
+  phases whose ID scores are spread wide around a small median;
 * ``cusum``: evidence accumulated over chunks, ``S_t = max(0, S_{t-1} + s_t
   - drift)`` on the normalised score (the ID median is 1), reset after an
   alarm; a persistent moderate excess then fires as surely as one large one.
@@ -59,6 +61,7 @@ class ScoreSpec:
     cusum: bool = False
     drift: float = 1.0
     spread: bool = False
+    chunk_quantile: float = 0.5
 
     def __post_init__(self):
         if self.whiten and self.spread:
@@ -71,6 +74,8 @@ class ScoreSpec:
             raise ValueError(f"window must be >= 0; got {self.window}")
         if not self.drift >= 0:
             raise ValueError(f"drift must be >= 0; got {self.drift}")
+        if not 0.0 < self.chunk_quantile < 1.0:
+            raise ValueError(f"chunk_quantile must be in (0, 1); got {self.chunk_quantile}")
 
     @property
     def normalised(self) -> bool:
@@ -89,7 +94,8 @@ class ScoreSpec:
         if self.spread:
             parts.append("by sample spread")
         if self.per_chunk:
-            parts.append(f"per-chunk (window {self.window})")
+            q = "" if self.chunk_quantile == 0.5 else f", ID quantile {self.chunk_quantile:g}"
+            parts.append(f"per-chunk (window {self.window}{q})")
         if self.cusum:
             parts.append(f"CUSUM (drift {self.drift:g})")
         return ", ".join(parts)
@@ -272,7 +278,7 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
             for c in range(chunks):
                 near = [s[j] for s in raw for j in range(max(0, c - spec.window), min(s.size, c + spec.window + 1))]
                 near = np.asarray([v for v in near if np.isfinite(v)])
-                table.append(float(max(np.median(near), 1e-12)) if near.size else cal.median)
+                table.append(float(max(np.quantile(near, spec.chunk_quantile), 1e-12)) if near.size else cal.median)
             cal.chunk_scale = table
     stats = [episode_statistic(s, spec, cal) for s in _scores(held, spec, point_dims, cal)]
     cal.reference = [[float(v) for v in s] for s in stats]

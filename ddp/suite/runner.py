@@ -86,7 +86,7 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
     return {
         "run_id": run.run_id, "suite": run.suite, "task": run.task, "method": run.method, "seed": run.seed,
         "benchmark": run.benchmark,
-        "train": {"steps": trained.steps, "seconds": trained.seconds, "loss": trained.loss},
+        "train": {"steps": trained.steps, "seconds": trained.total_seconds, "loss": trained.loss},
         "episodes": report["episodes"],
         "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
         "wall_seconds": time.perf_counter() - t0,
