@@ -251,8 +251,8 @@ class DDPController(KeyedModule):
     def _forecast(self, envs: list[int]) -> None:
         """O_pred = W_phi(O_curr, a_t) for the listed environments, one batched world-model call.
 
-        Lazy forecasts are made here, when D_R-I or imagination needs them; a background forecast
-        (``async_forecast``) is collected by :meth:`forward` before anything else.
+        Lazy forecasts are made here, when D_R-I or imagination needs them, and the inline next-cycle
+        forecast; a background forecast (``async_forecast``) is collected by :meth:`forward` first.
         """
         pending = self._pending(envs)
         if pending is not None:

@@ -116,7 +116,9 @@ class TrainResult:
     seconds: float  # this call's training time
     samples_per_second: float
     checkpoint: Path
-    total_seconds: float = 0.0  # training time over every call that built the checkpoint (resumes included)
+    # training time over every call that built the checkpoint (resumes included); None: a checkpoint written
+    # before this was recorded is in it
+    total_seconds: float | None = None
 
 
 class _Objective(torch.nn.Module):
@@ -248,9 +250,10 @@ class Trainer:
             )
         sums = {"loss": 0.0, "loss_bc": 0.0, "loss_wm": 0.0, "wm_error": 0.0}
         count, last_means = 0, {k: float("nan") for k in sums}  # no step in this call (a finished run resumed)
-        earlier_seconds = 0.0  # training time of the calls before this one (from the checkpoint)
+        earlier_seconds = 0.0  # training time of the calls before this one (from the checkpoint; None: unknown)
         if state is not None:
-            earlier_seconds = float(state.get("train_seconds", 0.0))
+            earlier = state.get("train_seconds")
+            earlier_seconds = None if earlier is None else float(earlier)
             last_means.update({k: float(v) for k, v in state.get("losses", {}).items() if k in last_means})
         t0, samples = time.perf_counter(), 0
         bar = tqdm(total=total, initial=step, disable=not (self.progress and ranks.main), desc=exp.recipe.name,
@@ -280,7 +283,7 @@ class Trainer:
                 "epoch": epoch,
                 "batch_in_epoch": batch_in_epoch,
                 "recipe": exp.to_yaml(),
-                "train_seconds": earlier_seconds + time.perf_counter() - t0,
+                "train_seconds": None if earlier_seconds is None else earlier_seconds + time.perf_counter() - t0,
                 "losses": dict(last_means),  # the last logged window's loss terms
             }
             if ema is not None:
@@ -352,14 +355,15 @@ class Trainer:
                     pass  # a second Ctrl-C during the save: the save completed; stop as asked
             raise
         bar.close()
+        final = window_means() if count else last_means  # a collective: every rank, before the save
+        last_means = final  # what the checkpoint records
         path = checkpoint()
         seconds = time.perf_counter() - t0
-        final = window_means() if count else last_means
         return TrainResult(
             steps=step, epochs=epoch, loss=final["loss"], loss_bc=final["loss_bc"], loss_wm=final["loss_wm"],
             wm_error=final["wm_error"],
             seconds=seconds, samples_per_second=samples / max(seconds, 1e-9), checkpoint=path,
-            total_seconds=earlier_seconds + seconds,
+            total_seconds=None if earlier_seconds is None else earlier_seconds + seconds,
         )
 
     def _logger(self):

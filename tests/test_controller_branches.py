@@ -157,8 +157,11 @@ def test_gripper_closure_settled_below_fires_on_a_grasp_wider_than_width_below()
     assert not settled.fired(holding_mug, 0, 0)  # min_chunks
     assert settled.fired(_fingers([0.050, 0.040]), 8, 8) and plain.fired(_fingers([0.050, 0.040]), 8, 8)
     assert not settled.fired(_fingers([0.056]), 8, 8)  # one frame: no motion to judge, width_below only
-    with pytest.raises(ValueError, match="settled_below"):
-        GripperClosureConfig(settled_below=0.04)
+    for bad in (0.04, float("nan")):
+        with pytest.raises(ValueError, match="settled_below"):
+            GripperClosureConfig(settled_below=bad)
+    with pytest.raises(ValueError, match="settle_tol"):
+        GripperClosureConfig(settled_below=0.09, settle_tol=float("nan"))
 
 
 # --------------------------------------------------------------------------- 3. oracle snap-back

@@ -64,8 +64,12 @@ def test_per_chunk_scale_is_the_chosen_id_quantile_of_each_phase():
         cal = fit_calibration(eps, spec, alpha=0.2, fit_fraction=0.5)
         expected = np.quantile(scores[:10, 1:], q, axis=0)  # the 10 fitting episodes, chunk by chunk
         assert np.allclose(cal.chunk_scale[1:], expected)
-    with pytest.raises(ValueError, match="chunk_quantile"):
-        ScoreSpec(per_chunk=True, chunk_quantile=1.0)
+        # a chunk past the longest fitting episode is scaled by the same quantile over all chunks
+        assert cal.scale_at(99) == pytest.approx(np.quantile(scores[:10, 1:], q))
+    assert DiscrepancyConfig(per_chunk=True, chunk_quantile=0.9).spec.chunk_quantile == 0.9
+    for bad in (1.0, 0.0, float("nan")):
+        with pytest.raises(ValueError, match="chunk_quantile"):
+            DiscrepancyConfig(per_chunk=True, chunk_quantile=bad)
 
 
 def test_conformal_threshold_rule():

@@ -68,6 +68,12 @@ def test_resume_after_interruption_equals_uninterrupted_run(tiny_recipe, tmp_pat
     assert res2.total_seconds >= first > res2.seconds > 0  # the first call's time is in both
     res3 = build(tiny_recipe).train(output_dir=tmp_path / "resumed", progress=False)
     assert res3.steps == res.steps and res3.total_seconds >= first and res3.loss == pytest.approx(res2.loss)
+    # a checkpoint from before the time was recorded: unknown (None), not a wrong number
+    state = load_checkpoint(tmp_path / "resumed/last.pt")
+    del state["train_seconds"]
+    torch.save(state, tmp_path / "resumed/last.pt")
+    res4 = build(tiny_recipe).train(output_dir=tmp_path / "resumed", progress=False)
+    assert res4.total_seconds is None and load_checkpoint(tmp_path / "resumed/last.pt")["train_seconds"] is None
 
 
 def test_checkpoint_round_trip_gives_identical_outputs(tiny_recipe, tmp_path):

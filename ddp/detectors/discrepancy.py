@@ -38,7 +38,7 @@ class DiscrepancyConfig:
     window: int = 1  # per_chunk: neighbouring chunks pooled on each side
     chunk_quantile: float = 0.5  # per_chunk: the ID quantile of the phase's scores divided by (0.5: median)
     cusum: bool = False  # accumulate evidence over chunks (CUSUM on the normalised score)
-    drift: float = 1.0  # cusum: subtracted each chunk, in units of the ID median score
+    drift: float = 1.0  # cusum: subtracted each chunk, in units of the per-chunk scale (the ID median by default)
     spread: bool = False  # residuals scaled by the forecast samples' spread (controller.forecast_samples > 1)
     fit_fraction: float = 0.5  # calibration: share of ID episodes fitting the score; the rest set tau
 
@@ -49,7 +49,7 @@ class DiscrepancyConfig:
             raise ValueError(f"alpha must be in (0, 1); got {self.alpha}")
         if not 0.0 < self.fit_fraction < 1.0:
             raise ValueError(f"fit_fraction must be in (0, 1); got {self.fit_fraction}")
-        self.spec  # noqa: B018 - validates dims, frames, window, drift
+        self.spec  # noqa: B018 - validates dims, frames, window, drift, chunk_quantile
 
     @property
     def spec(self) -> ScoreSpec:

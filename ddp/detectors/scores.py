@@ -152,7 +152,8 @@ def conformal_threshold(maxima, alpha: float) -> float:
 
 def episode_statistic(scores: np.ndarray, spec: ScoreSpec, reference) -> np.ndarray:
     """The thresholded statistic over one episode's chunk scores (NaN: no forecast), as the detector
-    computes it online: normalised per chunk phase / by the ID median, accumulated by CUSUM."""
+    computes it online: normalised per chunk phase (its ID median or quantile) / by the ID median,
+    accumulated by CUSUM."""
     s = np.asarray(scores, dtype=np.float64)
     if spec.normalised:
         s = s / np.array([reference.scale_at(c) for c in range(s.size)])
@@ -172,8 +173,10 @@ class ScoreCalibration:
     """Reference statistics of a score on ID episodes, and its conformal threshold.
 
     ``center`` / ``scale``: per latent dim residual mean / std (whitening); ``chunk_scale``: the ID
-    median score per chunk phase (``per_chunk``), ``median``: over all chunks; ``tau``: the threshold
-    on the statistic; ``reference``: the held-out ID statistic per chunk (AUROC in reports).
+    score per chunk phase (``per_chunk``: its median, or its ``chunk_quantile``), ``chunk_fallback``: the
+    same quantile over all chunks (the scale of chunks past the table; None: ``median``), ``median``: the
+    median over all chunks; ``tau``: the threshold on the statistic; ``reference``: the held-out ID
+    statistic per chunk (AUROC in reports).
     """
 
     alpha: float | None = None
@@ -182,6 +185,7 @@ class ScoreCalibration:
     scale: list[float] | None = None
     median: float | None = None
     chunk_scale: list[float] | None = None
+    chunk_fallback: float | None = None
     fit_episodes: int = 0
     threshold_episodes: int = 0
     reference: list[list[float]] | None = None
@@ -189,7 +193,7 @@ class ScoreCalibration:
     def scale_at(self, chunk: int) -> float:
         if self.chunk_scale and chunk < len(self.chunk_scale):
             return self.chunk_scale[chunk]
-        return self.median
+        return self.chunk_fallback if self.chunk_scale and self.chunk_fallback is not None else self.median
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -274,11 +278,13 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
         cal.median = float(max(np.median(allv), 1e-12))
         if spec.per_chunk:
             chunks = max(s.size for s in raw)
+            # past the longest fitting episode (and for a phase with no finite score): the same quantile over all
+            cal.chunk_fallback = float(max(np.quantile(allv, spec.chunk_quantile), 1e-12))
             table = []
             for c in range(chunks):
                 near = [s[j] for s in raw for j in range(max(0, c - spec.window), min(s.size, c + spec.window + 1))]
                 near = np.asarray([v for v in near if np.isfinite(v)])
-                table.append(float(max(np.quantile(near, spec.chunk_quantile), 1e-12)) if near.size else cal.median)
+                table.append(float(max(np.quantile(near, spec.chunk_quantile), 1e-12)) if near.size else cal.chunk_fallback)
             cal.chunk_scale = table
     stats = [episode_statistic(s, spec, cal) for s in _scores(held, spec, point_dims, cal)]
     cal.reference = [[float(v) for v in s] for s in stats]

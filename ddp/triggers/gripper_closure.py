@@ -20,11 +20,11 @@ class GripperClosureConfig:
     settle_tol: float = 0.002
 
     def __post_init__(self):
-        if self.width_below <= 0:
+        if not self.width_below > 0:
             raise ValueError(f"width_below must be > 0; got {self.width_below}")
-        if self.settled_below is not None and self.settled_below <= self.width_below:
+        if self.settled_below is not None and not self.settled_below > self.width_below:
             raise ValueError(f"settled_below must be > width_below ({self.width_below}); got {self.settled_below}")
-        if self.settle_tol <= 0:
+        if not self.settle_tol > 0:
             raise ValueError(f"settle_tol must be > 0; got {self.settle_tol}")
 
 
