@@ -355,13 +355,13 @@ class Trainer:
                     pass  # a second Ctrl-C during the save: the save completed; stop as asked
             raise
         bar.close()
-        final = window_means() if count else last_means  # a collective: every rank, before the save
-        last_means = final  # what the checkpoint records
+        if count:  # the steps since the last log line: a collective on every rank, before the save records it
+            last_means = window_means()
         path = checkpoint()
         seconds = time.perf_counter() - t0
         return TrainResult(
-            steps=step, epochs=epoch, loss=final["loss"], loss_bc=final["loss_bc"], loss_wm=final["loss_wm"],
-            wm_error=final["wm_error"],
+            steps=step, epochs=epoch, loss=last_means["loss"], loss_bc=last_means["loss_bc"],
+            loss_wm=last_means["loss_wm"], wm_error=last_means["wm_error"],
             seconds=seconds, samples_per_second=samples / max(seconds, 1e-9), checkpoint=path,
             total_seconds=None if earlier_seconds is None else earlier_seconds + seconds,
         )

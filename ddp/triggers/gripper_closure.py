@@ -31,7 +31,7 @@ class GripperClosureConfig:
 @register("trigger", "gripper_closure", config=GripperClosureConfig)
 class GripperClosureTrigger:
     """Fires when the distance between the finger positions in ``agent_pos`` drops below ``width_below``, or
-    (with ``settled_below``) when the fingers have stopped on an object narrower than that."""
+    (with ``settled_below``) when they have stopped under ``settled_below``: closed on a wider object."""
 
     def __init__(self, config: GripperClosureConfig):
         self.config = config
