@@ -147,8 +147,13 @@ def test_evaluate_writes_results_table_and_plots(exp, tmp_path):
         assert [e["seed"] for e in res["per_episode"]] == [1000, 1001]
     assert (tmp_path / "results.json").exists() and (tmp_path / "table.md").read_text().startswith("| method |")
     assert (tmp_path / "success.png").exists() and (tmp_path / "discrepancy_ood_ddp.png").exists()
-    mode = rep["protocols"]["ood_ddp"]["per_episode"][0]["mode"]
-    assert mode[2] == 1.0
+    first = rep["protocols"]["ood_ddp"]["per_episode"][0]
+    assert first["mode"][2] == 1.0
+    # each chunk's subtask and the controller's shifts: tracked when flagged (chunk 2), recovered at chunk 4
+    assert first["subtask"] == [0.0] * 4 + [1.0] * 4
+    shifts = [[0.0] * 3] * 8
+    shifts[2], shifts[4] = DELTA, [-d for d in DELTA]
+    assert first["ee_shift"] == shifts
 
 
 def test_video_frames_are_labelled_with_the_controller_mode(tmp_path):
