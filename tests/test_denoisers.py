@@ -322,3 +322,61 @@ def test_config_round_trip_and_state_dict_reload(name, context, horizon):
 def test_invalid_options_name_the_field(name, options, message):
     with pytest.raises(RecipeError, match=message):
         from_dict(get("denoiser", name).config_cls, options)
+
+
+@pytest.mark.parametrize("bias", [True, False])
+@pytest.mark.parametrize("input_grad", [True, False])
+def test_matmul_weight_gradient_conv_matches_torch(bias, input_grad):
+    """ddp's Conv1d with its CPU weight gradient as a matmul: the same output and gradients as nn.Conv1d
+    (the same parameters, state_dict interchangeable), with and without bias and input gradient."""
+    from ddp.denoisers.conv import Conv1d
+
+    torch.manual_seed(0)
+    fast = Conv1d(6, 10, 5, padding=2, bias=bias, weight_grad="matmul")
+    plain = torch.nn.Conv1d(6, 10, 5, padding=2, bias=bias)
+    plain.load_state_dict(fast.state_dict())
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(3, 6, 7, generator=g)
+    upstream = torch.randn(3, 10, 7, generator=g)
+    results = []
+    for conv in (fast, plain):
+        xi = x.clone().requires_grad_(input_grad)
+        y = conv(xi)
+        y.backward(upstream)
+        results.append((y.detach(), xi.grad, [p.grad for p in conv.parameters()]))
+        if conv is fast:
+            assert "MatmulWeightGrad" in type(y.grad_fn).__name__  # the fast backward really ran
+    (y1, gx1, gp1), (y2, gx2, gp2) = results
+    torch.testing.assert_close(y1, y2)
+    if input_grad:
+        torch.testing.assert_close(gx1, gx2)
+    else:
+        assert gx1 is None and gx2 is None
+    for a, b in zip(gp1, gp2):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_unet_weight_gradient_kernels_agree_and_auto_picks_where_matmul_pays():
+    """A whole U-Net trains identically (within float rounding) with either weight-gradient kernel; 'auto'
+    takes the matmul for large weights and short sequences only; inference and 'onednn' never do."""
+    from ddp.denoisers.conv import Conv1d, matmul_pays
+
+    name, context, horizon = WORLD
+    fast, plain = build(name, context, {"cpu_weight_grad": "matmul"}), build(name, context, {"cpu_weight_grad": "onednn"})
+    plain.load_state_dict(fast.state_dict())
+    batch = inputs(context, horizon, (5,), seed=2)
+    grads = []
+    for net in (fast, plain):
+        net.predict(**batch).square().mean().backward()
+        grads.append(torch.cat([p.grad.flatten() for p in net.parameters()]))
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-6)
+    assert matmul_pays(1024 * 1024 * 5, 16) and matmul_pays(512 * 512 * 5, 2)
+    assert not matmul_pays(512 * 512 * 5, 8) and not matmul_pays(64 * 64 * 5, 2)
+    assert not matmul_pays(128 * 128 * 5, 4)
+    conv = Conv1d(256, 256, 5, padding=2)  # 327,680 weights
+    assert conv._matmul_grad(torch.randn(2, 256, 2)) and not conv._matmul_grad(torch.randn(2, 256, 4))
+    with torch.no_grad():
+        assert not conv._matmul_grad(torch.randn(2, 256, 2))
+    assert not Conv1d(256, 256, 5, padding=2, weight_grad="onednn")._matmul_grad(torch.randn(2, 256, 2))
+    with pytest.raises(RecipeError, match="cpu_weight_grad: must be one of"):
+        build(name, context, {"cpu_weight_grad": "mkl"})

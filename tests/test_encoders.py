@@ -185,6 +185,18 @@ def test_bad_agent_pos_dim_raises():
         build("dp3", agent_pos_dim=0)
 
 
+def latents_and_gradients(encoders, pc, pos):
+    """Each encoder's latents and its parameters' gradients of one fixed weighted sum of them."""
+    outs, grads = [], []
+    for enc in encoders:
+        enc.zero_grad()
+        out = enc.encode(pc, pos)
+        (out * torch.arange(out.numel()).reshape(out.shape).sin()).sum().backward()
+        outs.append(out.detach())
+        grads.append(torch.cat([p.grad.flatten() for p in enc.parameters()]))
+    return outs, grads
+
+
 @pytest.mark.parametrize("block", [N_POINTS, 3 * N_POINTS, 5 * N_POINTS + 7])
 def test_point_blocks_give_the_unblocked_latents_and_gradients(block):
     """points_per_block runs the PointNet on whole frames at a time (cache blocking): the latents and the
@@ -194,13 +206,7 @@ def test_point_blocks_give_the_unblocked_latents_and_gradients(block):
     blocked = build("dp3", {"points_per_block": block})
     blocked.load_state_dict(plain.state_dict())
     pc, pos = inputs((4, 5), seed=3)
-    outs, grads = [], []
-    for enc in (plain, blocked):
-        enc.zero_grad()
-        out = enc.encode(pc, pos)
-        (out * torch.arange(out.numel()).reshape(out.shape).sin()).sum().backward()
-        outs.append(out.detach())
-        grads.append(torch.cat([p.grad.flatten() for p in enc.parameters()]))
+    outs, grads = latents_and_gradients((plain, blocked), pc, pos)
     torch.testing.assert_close(outs[1], outs[0], rtol=0, atol=1e-6)
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-4, atol=1e-5)  # summed in another order
     for empty in ((0, 2), (5, 0)):  # no frames at all: an empty latent of the right shape, blocked or not
@@ -208,3 +214,35 @@ def test_point_blocks_give_the_unblocked_latents_and_gradients(block):
         assert plain.encode_points(torch.randn(*empty, N_POINTS, 3)).shape == (*empty, 64)
     with pytest.raises(RecipeError, match="points_per_block must be >= 0"):
         build("dp3", {"points_per_block": -1})
+
+
+@pytest.mark.parametrize("n_points", [128, 256])
+def test_winners_only_backward_gives_the_dense_latents_and_gradients(n_points):
+    """pool_backward 'winners' recomputes, with gradient, only the points that win the max-pool in some
+    channel: the latents equal the dense forward's and the parameter gradients match, also with duplicated
+    points (exact ties) and frames where a channel's maximum is 0; 'auto' takes it on the CPU from 256
+    points per frame, and a forward without gradient never does."""
+    torch.manual_seed(0)
+    dense = build("dp3", {"pool_backward": "dense", "points_per_block": 3 * n_points})
+    winners = build("dp3", {"pool_backward": "winners" if n_points < 256 else "auto", "points_per_block": 3 * n_points})
+    winners.load_state_dict(dense.state_dict())
+    g = torch.Generator().manual_seed(1)
+    pc = torch.randn(4, 5, n_points, 3, generator=g)
+    pc[0, 0, 1::2] = pc[0, 0, 0::2]  # every point twice: exact ties in every channel
+    pc[1, 2] = pc[1, 2, :1]  # one point repeated: a single distinct winner
+    pos = torch.randn(4, 5, AGENT_POS_DIM, generator=g)
+    outs, grads = latents_and_gradients((dense, winners), pc, pos)
+    torch.testing.assert_close(outs[1], outs[0], rtol=0, atol=1e-6)
+    torch.testing.assert_close(grads[1], grads[0], rtol=1e-4, atol=1e-5)
+    frames = pc.reshape(-1, n_points, 3)
+    assert winners._winners_backward(frames)
+    kept = winners._winners(frames)
+    assert kept.shape[1] < n_points  # fewer rows through the backward
+    assert not dense._winners_backward(frames)
+    with torch.no_grad():
+        assert not winners._winners_backward(frames)
+    assert winners.encode_points(torch.randn(0, 2, n_points, 3)).shape == (0, 2, 64)
+    auto = build("dp3", {"pool_backward": "auto"})
+    assert auto._winners_backward(torch.randn(2, 256, 3)) and not auto._winners_backward(torch.randn(2, 128, 3))
+    with pytest.raises(RecipeError, match="pool_backward: must be one of"):
+        build("dp3", {"pool_backward": "sparse"})

@@ -17,6 +17,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor, nn
 
+from ddp.denoisers.conv import Conv1d
 from ddp.keys import KeyedModule
 
 
@@ -45,11 +46,15 @@ class StepEmbedding(nn.Module):
 
 
 class Conv1dBlock(nn.Sequential):
-    """Conv1d (odd kernel, 'same' padding) -> GroupNorm -> Mish."""
+    """Conv1d (odd kernel, 'same' padding) -> GroupNorm -> Mish.
 
-    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, n_groups: int) -> None:
+    The conv is :class:`ddp.denoisers.conv.Conv1d` (``nn.Conv1d``'s parameters; ``weight_grad``
+    chooses its CPU weight-gradient kernel)."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, n_groups: int, *,
+                 weight_grad: str = "auto") -> None:
         super().__init__(
-            nn.Conv1d(in_channels, out_channels, kernel_size, padding=kernel_size // 2),
+            Conv1d(in_channels, out_channels, kernel_size, padding=kernel_size // 2, weight_grad=weight_grad),
             nn.GroupNorm(n_groups, out_channels),
             nn.Mish(),
         )
@@ -74,12 +79,14 @@ class FiLMResidualBlock(nn.Module):
         kernel_size: int,
         n_groups: int,
         predict_scale: bool,
+        weight_grad: str = "auto",
     ) -> None:
         super().__init__()
         self.out_channels = out_channels
         self.predict_scale = predict_scale
-        self.conv1 = Conv1dBlock(in_channels, out_channels, kernel_size, n_groups)
-        self.conv2 = Conv1dBlock(out_channels, out_channels, kernel_size, n_groups)
+        fast = {"weight_grad": weight_grad}
+        self.conv1 = Conv1dBlock(in_channels, out_channels, kernel_size, n_groups, **fast)
+        self.conv2 = Conv1dBlock(out_channels, out_channels, kernel_size, n_groups, **fast)
         film_dim = 2 * out_channels if predict_scale else out_channels
         self.film = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, film_dim))
         self.residual = (
@@ -148,8 +155,10 @@ class ConditionalUnet1DBackbone(nn.Module):
         blocks_per_level: int,
         mid_blocks: int,
         predict_scale: bool,
+        weight_grad: str = "auto",
     ) -> None:
         super().__init__()
+        fast = {"weight_grad": weight_grad}
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.global_cond_dim = global_cond_dim
@@ -159,7 +168,7 @@ class ConditionalUnet1DBackbone(nn.Module):
 
         def block(c_in: int, c_out: int) -> FiLMResidualBlock:
             return FiLMResidualBlock(
-                c_in, c_out, cond_dim, kernel_size=kernel_size, n_groups=n_groups, predict_scale=predict_scale
+                c_in, c_out, cond_dim, kernel_size=kernel_size, n_groups=n_groups, predict_scale=predict_scale, **fast
             )
 
         widths = [in_channels, *self.down_dims]
@@ -188,7 +197,7 @@ class ConditionalUnet1DBackbone(nn.Module):
             self.up.append(level)
 
         self.head = nn.Sequential(
-            Conv1dBlock(self.down_dims[0], self.down_dims[0], kernel_size, n_groups),
+            Conv1dBlock(self.down_dims[0], self.down_dims[0], kernel_size, n_groups, **fast),
             nn.Conv1d(self.down_dims[0], out_channels, 1),
         )
 
@@ -277,6 +286,7 @@ class UnetDenoiser(KeyedModule):
             blocks_per_level=config.blocks_per_level,
             mid_blocks=config.mid_blocks,
             predict_scale=config.cond_predict_scale,
+            weight_grad=config.cpu_weight_grad,
         )
 
     def unet_input(self, sample: Tensor, local_cond: Tensor | None) -> Tensor:

@@ -32,6 +32,11 @@ class ConditionalUnet1DConfig:
     mid_blocks: int = 2
     cond_predict_scale: bool = True  # FiLM scale and bias; False = bias only
     condition_type: Literal["film"] = "film"
+    # CPU training: the convolutions' weight gradient as one matmul where that is faster ("auto": 4 M+
+    # element weights, and 256 K+ element weights on levels of 2 steps; conv.matmul_pays), always
+    # ("matmul") or never ("onednn"). Same results within float rounding
+    # (ddp/denoisers/conv.py).
+    cpu_weight_grad: Literal["auto", "matmul", "onednn"] = "auto"
 
     def __post_init__(self) -> None:
         self.down_dims = tuple(self.down_dims)

@@ -48,6 +48,13 @@ class DP3EncoderConfig:
     # activations stay in the cache: 2-3x faster encoding at equal results (rows are independent; only
     # float rounding differs). 0: all points at once (the plain DP3 forward, always used on GPUs).
     points_per_block: int = 2048
+    # Training: only the points that win the max-pool in some channel get a gradient (the per-point MLP
+    # is row-independent, every other point's gradient is exactly zero). "winners" first runs the
+    # PointNet without gradient on every point, then with gradient on each frame's winners only
+    # (rows padded to the batch's most winners): the same latents, and gradients within float rounding,
+    # at about a third of the backward's arithmetic once frames have 256+ points. "dense": the plain
+    # backward through every point. "auto": winners on a CPU at 256+ points per frame.
+    pool_backward: Literal["auto", "winners", "dense"] = "auto"
 
     def __post_init__(self) -> None:
         self.pointnet_channels = tuple(self.pointnet_channels)
@@ -113,13 +120,47 @@ class DP3Encoder(KeyedModule):
             )
         points = point_cloud[..., : self.point_channels]
         frames = points.reshape(-1, *points.shape[-2:])
-        block = max(1, self.config.points_per_block // max(1, points.shape[-2]))
+        if self._winners_backward(frames):
+            frames = self._winners(frames)
+        return self.projection(self._pooled(frames)).reshape(*points.shape[:-2], self.config.out_channels)
+
+    def _pooled(self, frames: Tensor) -> Tensor:
+        """PointNet + max-pool of frames ``[F, P, C] -> [F, pointnet_channels[-1]]``."""
+        block = max(1, self.config.points_per_block // max(1, frames.shape[-2]))
         # blocking pays on CPU caches; on a GPU it would only split one launch into many
-        if self.config.points_per_block == 0 or frames.shape[0] <= block or points.device.type != "cpu":
-            pooled = self.pointnet(frames).amax(dim=-2)
-        else:  # cache blocking: each block of frames goes through the whole MLP and the max-pool at once
-            pooled = torch.cat([self.pointnet(part).amax(dim=-2) for part in frames.split(block)])
-        return self.projection(pooled).reshape(*points.shape[:-2], self.config.out_channels)
+        if self.config.points_per_block == 0 or frames.shape[0] <= block or frames.device.type != "cpu":
+            return self.pointnet(frames).amax(dim=-2)
+        # cache blocking: each block of frames goes through the whole MLP and the max-pool at once
+        return torch.cat([self.pointnet(part).amax(dim=-2) for part in frames.split(block)])
+
+    def _winners_backward(self, frames: Tensor) -> bool:
+        mode = self.config.pool_backward
+        if mode == "dense" or not torch.is_grad_enabled() or not any(p.requires_grad for p in self.pointnet.parameters()):
+            return False
+        return mode == "winners" or (frames.device.type == "cpu" and frames.shape[-2] >= 256)
+
+    @torch.no_grad()
+    def _winners(self, frames: Tensor) -> Tensor:
+        """Each frame's max-pool winners ``[F, K, C]`` (K: the most winners of any frame; a frame with fewer
+        is padded with its other points, which cannot change its maxima)."""
+        block = max(1, self.config.points_per_block // max(1, frames.shape[-2]))
+        parts = [frames] if self.config.points_per_block == 0 or frames.device.type != "cpu" else frames.split(block)
+        n_points = frames.shape[-2]
+        if frames.shape[0] == 0:
+            return frames
+        won = []
+        for part in parts:
+            top, where = self.pointnet(part).max(dim=-2)  # [f, channels]
+            # a channel whose maximum is 0 (all ReLU-clamped) passes no gradient to any point
+            where = torch.where(top > 0, where, n_points)
+            hits = torch.zeros(part.shape[0], n_points + 1, device=frames.device)
+            won.append(hits.scatter_(1, where, 1.0)[:, :n_points] > 0)
+        won = torch.cat(won)
+        k = max(1, int(won.sum(1).max()))
+        if k >= n_points:
+            return frames
+        order = torch.argsort(won.to(torch.uint8), dim=1, descending=True, stable=True)[:, :k]
+        return frames.gather(1, order.unsqueeze(-1).expand(-1, -1, frames.shape[-1]))
 
     def encode(self, point_cloud: Tensor, agent_pos: Tensor) -> Tensor:
         """O = cat(PointNet(point_cloud), MLP(agent_pos)): ``[*, P, C], [*, D] -> [*, out_dim]``."""
