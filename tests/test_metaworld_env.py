@@ -138,6 +138,24 @@ def test_point_cloud_has_the_table_and_the_object(make_env):
     assert above[:, 2].min() >= 0.005, "raising the crop floor drops the table"
 
 
+def test_visible_sites_draw_the_goal_marker_into_the_cloud(make_env):
+    """push's goal changes with the initial state and is a site: hidden (the default), no point lies on
+    it; with visible_sites [goal] the cloud has points there (the table is cropped away in both)."""
+    counts = {}
+    for sites in ((), ("goal",)):
+        env = make_env(task="push", num_points=512, crop_min=(-0.6, 0.3, 0.005), visible_sites=sites)
+        near = []
+        for seed in range(3):
+            td = env.reset(seed=seed)
+            goal, puck = td["privileged", "goal"].numpy(), td["privileged", "object_pos"][0].numpy()
+            assert np.linalg.norm(goal - puck) > 0.1  # the puck does not stand in for the marker
+            near.append(int((np.linalg.norm(td["point_cloud"].numpy() - goal, axis=1) < 0.03).sum()))
+        counts[sites] = near
+    assert counts[()] == [0, 0, 0] and min(counts[("goal",)]) >= 1, counts
+    with pytest.raises(ValueError, match="visible_sites: no site 'gaol'.*did you mean 'goal'"):
+        make_env(task="push", **SMALL, visible_sites=("gaol",))
+
+
 # -------------------------------------------------------------- displacement
 
 

@@ -7,7 +7,8 @@ Experiments"):
 * ``"point_cloud"`` ``[num_points, 3]``: depth from camera ``corner2``
   re-posed at DP3's ``[0.6, 0.295, 0.8]``, back-projected to the world
   frame, cropped to a workspace box and farthest-point-sampled (sites such
-  as the goal marker are hidden). Absent when ``render_point_cloud=False``.
+  as the goal marker are hidden unless named in ``visible_sites``). Absent
+  when ``render_point_cloud=False``.
 * ``"agent_pos"`` ``[9]``: hand position + ``rightEndEffector`` +
   ``leftEndEffector`` site positions.
 * ``"success"`` (bool ``[1]``): MetaWorld's success flag at this step.
@@ -126,6 +127,9 @@ class MetaWorldEnvConfig(ObservationOptions):
         camera: MuJoCo camera name.
         camera_pos: world position the camera is moved to (None: keep the model's).
         crop_min, crop_max: world-frame workspace box kept in the cloud.
+        visible_sites: sites drawn into the depth frames, hence the cloud (default none). ``[goal]``
+            shows the goal marker: the only sign of the target in push, pick-place and soccer, whose
+            goal changes with the initial state (DP3's renderer draws every site).
         num_points: points after farthest point sampling.
         obs_every, obs_history: render the cloud after ``t`` actions iff
             ``t % obs_every == 0`` or ``t % obs_every > obs_every - obs_history``.
@@ -148,6 +152,7 @@ class MetaWorldEnvConfig(ObservationOptions):
     camera_pos: tuple[float, float, float] | None = (0.6, 0.295, 0.8)
     crop_min: tuple[float, float, float] = (-0.6, 0.3, -0.01)
     crop_max: tuple[float, float, float] = (0.6, 1.1, 0.7)
+    visible_sites: tuple[str, ...] = ()
     obs_every: int = 1
     obs_history: int = 1
     displacement: bool = False
@@ -157,6 +162,7 @@ class MetaWorldEnvConfig(ObservationOptions):
     settle_steps: int = 10
 
     def __post_init__(self):
+        self.visible_sites = tuple(self.visible_sites)
         if self.task.endswith("-v3"):
             self.task = self.task[: -len("-v3")]
         if self.task not in METAWORLD_V3_TASKS:
@@ -222,7 +228,8 @@ class MetaWorldEnv(MujocoCloudEnv):
         self._widen_goal_space()
         model = self.sim.model
 
-        self._renderer = SceneRenderer(model)  # depth for clouds, colour for videos (lazy)
+        # depth for clouds, colour for videos (lazy)
+        self._renderer = SceneRenderer(model, visible_sites=tuple(cfg.visible_sites))
         cam = self._renderer.camera_id(cfg.camera)
         if cfg.camera_pos is not None:
             model.cam_pos[cam] = cfg.camera_pos

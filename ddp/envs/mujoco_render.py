@@ -60,10 +60,17 @@ def _track(renderer) -> None:
     _OPEN.add(renderer)
 
 
-class SceneRenderer:
-    """Depth and colour renderers of one ``MjModel`` (created lazily, closed by ``close()``)."""
+# the site group that depth frames show: ``visible_sites`` are moved into it, every other group is hidden
+CLOUD_SITE_GROUP = 5
 
-    def __init__(self, model):
+
+class SceneRenderer:
+    """Depth and colour renderers of one ``MjModel`` (created lazily, closed by ``close()``).
+
+    Depth frames (point clouds) hide every site except those named in ``visible_sites`` (e.g. MetaWorld's
+    ``goal`` marker: the only sign of a push or place target), which colour frames show as well."""
+
+    def __init__(self, model, visible_sites: tuple[str, ...] = ()):
         import mujoco
 
         self._mj = mujoco
@@ -73,6 +80,15 @@ class SceneRenderer:
         self._rgb: dict[tuple[int, int], object] = {}
         self._hide_sites = mujoco.MjvOption()
         self._hide_sites.sitegroup[:] = 0
+        self._rgb_option = mujoco.MjvOption()
+        if visible_sites:
+            names = [model.site(i).name for i in range(model.nsite)]
+            for name in visible_sites:
+                if name not in names:
+                    raise ValueError(f"visible_sites: no site {name!r} in this model{suggest(name, names)}")
+                model.site_group[names.index(name)] = CLOUD_SITE_GROUP
+            self._hide_sites.sitegroup[CLOUD_SITE_GROUP] = 1
+            self._rgb_option.sitegroup[CLOUD_SITE_GROUP] = 1
 
     def camera_id(self, name: str, what: str = "camera") -> int:
         """The id of a named camera; a one-line error naming the closest camera otherwise."""
@@ -89,7 +105,8 @@ class SceneRenderer:
         return renderer
 
     def depth(self, data, camera: int, width: int, height: int | None = None) -> np.ndarray:
-        """Metric depth ``[height, width]`` from camera id ``camera`` (sites hidden, no shadows)."""
+        """Metric depth ``[height, width]`` from camera id ``camera`` (sites but ``visible_sites`` hidden, no
+        shadows)."""
         height = width if height is None else height
         if self._depth is None or self._depth_size != (width, height):
             if self._depth is not None:
@@ -108,7 +125,7 @@ class SceneRenderer:
         if key not in self._rgb:
             self._rgb[key] = self._new(width, height)
         renderer = self._rgb[key]
-        renderer.update_scene(data, camera=camera)
+        renderer.update_scene(data, camera=camera, scene_option=self._rgb_option)
         image = renderer.render()
         return (image[::-1] if flip else image).copy()
 
