@@ -254,6 +254,17 @@ def test_metaworld_demos_regenerate_when_parameters_change(mw_cache, monkeypatch
     _source(_mw_recipe(cache)).load()
 
 
+def test_options_added_later_keep_older_demo_caches_at_their_default(mw_cache):
+    """visible_sites came after caches existed: left at its default it is not part of the cache's hash (a
+    cache written before it stays valid); set, it is (the clouds differ)."""
+    _, source, _ = mw_cache
+    params = source.generation_params()
+    assert "visible_sites" not in params["env_config"]
+    drawn = _source({**_mw_recipe(source.path.parent), "env": {**SMALL_ENV, "visible_sites": ["goal"]}})
+    assert drawn.generation_params()["env_config"]["visible_sites"] == ["goal"]
+    assert drawn.generation_params()["env_config_hash"] != params["env_config_hash"]
+
+
 def test_metaworld_cache_is_replaced_atomically(tmp_path, monkeypatch):
     pytest.importorskip("metaworld")
     from ddp.data.sources.metaworld_expert import MetaWorldExpertDemos

@@ -364,6 +364,8 @@ def test_unet_weight_gradient_kernels_agree_and_auto_picks_where_matmul_pays():
     name, context, horizon = WORLD
     fast, plain = build(name, context, {"cpu_weight_grad": "matmul"}), build(name, context, {"cpu_weight_grad": "onednn"})
     plain.load_state_dict(fast.state_dict())
+    convs = [m for m in fast.modules() if isinstance(m, Conv1d)]
+    assert len(convs) > 10 and all(c.weight_grad == "matmul" for c in convs)  # the option reaches every block
     batch = inputs(context, horizon, (5,), seed=2)
     grads = []
     for net in (fast, plain):
@@ -378,5 +380,6 @@ def test_unet_weight_gradient_kernels_agree_and_auto_picks_where_matmul_pays():
     with torch.no_grad():
         assert not conv._matmul_grad(torch.randn(2, 256, 2))
     assert not Conv1d(256, 256, 5, padding=2, weight_grad="onednn")._matmul_grad(torch.randn(2, 256, 2))
+    assert not Conv1d(256, 256, 5, padding=2, weight_grad="matmul")._matmul_grad(torch.randn(256, 2))  # unbatched
     with pytest.raises(RecipeError, match="cpu_weight_grad: must be one of"):
         build(name, context, {"cpu_weight_grad": "mkl"})

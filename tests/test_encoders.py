@@ -8,6 +8,7 @@ from tensordict import TensorDict
 from torch import nn
 
 from ddp.config import from_dict, to_dict
+from ddp.encoders.dp3 import DP3EncoderConfig
 from ddp.errors import RecipeError
 from ddp.registry import get
 
@@ -231,7 +232,11 @@ def test_winners_only_backward_gives_the_dense_latents_and_gradients(n_points):
     pc[0, 0, 1::2] = pc[0, 0, 0::2]  # every point twice: exact ties in every channel
     pc[1, 2] = pc[1, 2, :1]  # one point repeated: a single distinct winner
     pos = torch.randn(4, 5, AGENT_POS_DIM, generator=g)
+    calls = []
+    original = winners._winners
+    winners._winners = lambda frames: calls.append(frames.shape) or original(frames)  # encode takes the path
     outs, grads = latents_and_gradients((dense, winners), pc, pos)
+    assert calls == [(20, n_points, 3)]
     torch.testing.assert_close(outs[1], outs[0], rtol=0, atol=1e-6)
     torch.testing.assert_close(grads[1], grads[0], rtol=1e-4, atol=1e-5)
     frames = pc.reshape(-1, n_points, 3)
@@ -242,7 +247,12 @@ def test_winners_only_backward_gives_the_dense_latents_and_gradients(n_points):
     with torch.no_grad():
         assert not winners._winners_backward(frames)
     assert winners.encode_points(torch.randn(0, 2, n_points, 3)).shape == (0, 2, 64)
+    cloud = pc.clone().requires_grad_()  # a cloud that needs its own gradient gets it (the dense path)
+    winners.encode_points(cloud).sum().backward()
+    assert cloud.grad is not None and cloud.grad.abs().sum() > 0
     auto = build("dp3", {"pool_backward": "auto"})
     assert auto._winners_backward(torch.randn(2, 256, 3)) and not auto._winners_backward(torch.randn(2, 128, 3))
     with pytest.raises(RecipeError, match="pool_backward: must be one of"):
         build("dp3", {"pool_backward": "sparse"})
+    with pytest.raises(ValueError, match="pool_backward must be"):
+        DP3EncoderConfig(pool_backward="winner")

@@ -169,6 +169,11 @@ class CachedExpertDemos:
     def generation_params(self) -> dict:
         """What the cached demos depend on (compared with ``<path>/generation.json``)."""
         env_cfg = to_dict(self.env_config)
+        # env options added after caches were written leave the hash alone at their default value, so
+        # the demos cached before them stay valid (an env config declares them in ``cache_neutral_defaults``)
+        for key, default in getattr(self.env_config, "cache_neutral_defaults", {}).items():
+            if key in env_cfg and env_cfg[key] == default:
+                del env_cfg[key]
         return {
             "format": self.cache_format,
             "version": self.cache_version,

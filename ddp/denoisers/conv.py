@@ -10,7 +10,9 @@ are interchangeable) and its forward; on the CPU, in float32, where :func:`matmu
     grad_W[o, c, k] = sum_{b, t} grad_y[b, o, t] * x_pad[b, c, t + k]
 
 as ``grad_y [O, B*T] @ im2col(x) [B*T, C*K]``, and the input gradient with torch's own kernel.
-The results equal ``nn.Conv1d``'s within float rounding (tested). Stride 1, no dilation, one group.
+The results equal ``nn.Conv1d``'s within float rounding (tested). Stride 1, no dilation, one group,
+batched input; the fast backward is not itself differentiable (no double backward: use
+``weight_grad="onednn"`` for that).
 """
 
 from __future__ import annotations
@@ -77,7 +79,8 @@ class Conv1d(nn.Conv1d):
         ):
             return False
         return (
-            self.weight.requires_grad
+            x.dim() == 3
+            and self.weight.requires_grad
             and torch.is_grad_enabled()
             and x.device.type == "cpu"
             and x.dtype == torch.float32

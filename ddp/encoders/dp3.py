@@ -53,7 +53,8 @@ class DP3EncoderConfig:
     # PointNet without gradient on every point, then with gradient on each frame's winners only
     # (rows padded to the batch's most winners): the same latents, and gradients within float rounding,
     # at about a third of the backward's arithmetic once frames have 256+ points. "dense": the plain
-    # backward through every point. "auto": winners on a CPU at 256+ points per frame.
+    # backward through every point. "auto": winners on a CPU at 256+ points per frame. A point cloud
+    # that itself needs a gradient always takes the dense path.
     pool_backward: Literal["auto", "winners", "dense"] = "auto"
 
     def __post_init__(self) -> None:
@@ -67,6 +68,8 @@ class DP3EncoderConfig:
             raise ValueError(f"points_per_block must be >= 0 (0: no blocking); got {self.points_per_block}")
         if self.out_channels <= 0:
             raise ValueError(f"out_channels must be positive; got {self.out_channels}")
+        if self.pool_backward not in ("auto", "winners", "dense"):
+            raise ValueError(f"pool_backward must be 'auto', 'winners' or 'dense'; got {self.pool_backward!r}")
         if self.final_norm not in ("layernorm", "none"):
             raise ValueError(f"final_norm must be 'layernorm' or 'none'; got {self.final_norm!r}")
 
@@ -135,7 +138,9 @@ class DP3Encoder(KeyedModule):
 
     def _winners_backward(self, frames: Tensor) -> bool:
         mode = self.config.pool_backward
-        if mode == "dense" or not torch.is_grad_enabled() or not any(p.requires_grad for p in self.pointnet.parameters()):
+        if mode == "dense" or not torch.is_grad_enabled() or frames.requires_grad:  # input gradients: dense
+            return False
+        if not any(p.requires_grad for p in self.pointnet.parameters()):
             return False
         return mode == "winners" or (frames.device.type == "cpu" and frames.shape[-2] >= 256)
 

@@ -72,6 +72,7 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from dataclasses import dataclass  # noqa: E402
+from typing import ClassVar  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -128,8 +129,9 @@ class MetaWorldEnvConfig(ObservationOptions):
         camera_pos: world position the camera is moved to (None: keep the model's).
         crop_min, crop_max: world-frame workspace box kept in the cloud.
         visible_sites: sites drawn into the depth frames, hence the cloud (default none). ``[goal]``
-            shows the goal marker: the only sign of the target in push, pick-place and soccer, whose
-            goal changes with the initial state (DP3's renderer draws every site).
+            shows the goal marker: the only sign of the target in push and pick-place, whose goal
+            changes with the initial state (as in soccer and sweep; DP3's renderer draws every site).
+            The named sites move to site group 5 of this env's model for good.
         num_points: points after farthest point sampling.
         obs_every, obs_history: render the cloud after ``t`` actions iff
             ``t % obs_every == 0`` or ``t % obs_every > obs_every - obs_history``.
@@ -143,6 +145,9 @@ class MetaWorldEnvConfig(ObservationOptions):
         occlusion_chunks: number of blind chunks.
         occlusion_mode: the blind cloud: ``"zeros"``, ``"drop"`` or ``"noise"``.
     """
+
+    #: options that leave the demo-cache hash alone at this value (added after caches existed)
+    cache_neutral_defaults: ClassVar[dict] = {"visible_sites": []}
 
     task: str = "button-press"
     seed_tasks: int = 0
