@@ -84,9 +84,8 @@ class FiLMResidualBlock(nn.Module):
         super().__init__()
         self.out_channels = out_channels
         self.predict_scale = predict_scale
-        fast = {"weight_grad": weight_grad}
-        self.conv1 = Conv1dBlock(in_channels, out_channels, kernel_size, n_groups, **fast)
-        self.conv2 = Conv1dBlock(out_channels, out_channels, kernel_size, n_groups, **fast)
+        self.conv1 = Conv1dBlock(in_channels, out_channels, kernel_size, n_groups, weight_grad=weight_grad)
+        self.conv2 = Conv1dBlock(out_channels, out_channels, kernel_size, n_groups, weight_grad=weight_grad)
         film_dim = 2 * out_channels if predict_scale else out_channels
         self.film = nn.Sequential(nn.Mish(), nn.Linear(cond_dim, film_dim))
         self.residual = (
@@ -158,7 +157,6 @@ class ConditionalUnet1DBackbone(nn.Module):
         weight_grad: str = "auto",
     ) -> None:
         super().__init__()
-        fast = {"weight_grad": weight_grad}
         self.in_channels = in_channels
         self.out_channels = out_channels
         self.global_cond_dim = global_cond_dim
@@ -168,7 +166,8 @@ class ConditionalUnet1DBackbone(nn.Module):
 
         def block(c_in: int, c_out: int) -> FiLMResidualBlock:
             return FiLMResidualBlock(
-                c_in, c_out, cond_dim, kernel_size=kernel_size, n_groups=n_groups, predict_scale=predict_scale, **fast
+                c_in, c_out, cond_dim, kernel_size=kernel_size, n_groups=n_groups, predict_scale=predict_scale,
+                weight_grad=weight_grad,
             )
 
         widths = [in_channels, *self.down_dims]
@@ -197,7 +196,7 @@ class ConditionalUnet1DBackbone(nn.Module):
             self.up.append(level)
 
         self.head = nn.Sequential(
-            Conv1dBlock(self.down_dims[0], self.down_dims[0], kernel_size, n_groups, **fast),
+            Conv1dBlock(self.down_dims[0], self.down_dims[0], kernel_size, n_groups, weight_grad=weight_grad),
             nn.Conv1d(self.down_dims[0], out_channels, 1),
         )
 

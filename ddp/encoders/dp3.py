@@ -127,14 +127,19 @@ class DP3Encoder(KeyedModule):
             frames = self._winners(frames)
         return self.projection(self._pooled(frames)).reshape(*points.shape[:-2], self.config.out_channels)
 
+    def _frame_blocks(self, frames: Tensor) -> list[Tensor] | tuple[Tensor, ...]:
+        """Cache blocking: whole frames of about ``points_per_block`` points, each taken through the whole
+        MLP and the max-pool at once. It pays on CPU caches; on a GPU it would only split one launch."""
+        if self.config.points_per_block == 0 or frames.device.type != "cpu":
+            return [frames]
+        return frames.split(max(1, self.config.points_per_block // max(1, frames.shape[-2])))
+
     def _pooled(self, frames: Tensor) -> Tensor:
         """PointNet + max-pool of frames ``[F, P, C] -> [F, pointnet_channels[-1]]``."""
-        block = max(1, self.config.points_per_block // max(1, frames.shape[-2]))
-        # blocking pays on CPU caches; on a GPU it would only split one launch into many
-        if self.config.points_per_block == 0 or frames.shape[0] <= block or frames.device.type != "cpu":
+        blocks = self._frame_blocks(frames)
+        if len(blocks) == 1:
             return self.pointnet(frames).amax(dim=-2)
-        # cache blocking: each block of frames goes through the whole MLP and the max-pool at once
-        return torch.cat([self.pointnet(part).amax(dim=-2) for part in frames.split(block)])
+        return torch.cat([self.pointnet(part).amax(dim=-2) for part in blocks])
 
     def _winners_backward(self, frames: Tensor) -> bool:
         mode = self.config.pool_backward
@@ -148,13 +153,11 @@ class DP3Encoder(KeyedModule):
     def _winners(self, frames: Tensor) -> Tensor:
         """Each frame's max-pool winners ``[F, K, C]`` (K: the most winners of any frame; a frame with fewer
         is padded with its other points, which cannot change its maxima)."""
-        block = max(1, self.config.points_per_block // max(1, frames.shape[-2]))
-        parts = [frames] if self.config.points_per_block == 0 or frames.device.type != "cpu" else frames.split(block)
         n_points = frames.shape[-2]
         if frames.shape[0] == 0:
             return frames
         won = []
-        for part in parts:
+        for part in self._frame_blocks(frames):
             top, where = self.pointnet(part).max(dim=-2)  # [f, channels]
             # a channel whose maximum is 0 (all ReLU-clamped) passes no gradient to any point
             where = torch.where(top > 0, where, n_points)

@@ -234,7 +234,7 @@ class MetaWorldEnv(MujocoCloudEnv):
         model = self.sim.model
 
         # depth for clouds, colour for videos (lazy)
-        self._renderer = SceneRenderer(model, visible_sites=tuple(cfg.visible_sites))
+        self._renderer = SceneRenderer(model, visible_sites=cfg.visible_sites)
         cam = self._renderer.camera_id(cfg.camera)
         if cfg.camera_pos is not None:
             model.cam_pos[cam] = cfg.camera_pos
