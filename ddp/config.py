@@ -9,6 +9,7 @@ naming the recipe file and the dotted key.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import types
 import typing
@@ -131,6 +132,35 @@ def coerce(value: Any, tp: Any, key: str, source: str | None) -> Any:
 def field_types(cls: type) -> dict[str, Any]:
     hints = typing.get_type_hints(cls)
     return {f.name: hints[f.name] for f in dataclasses.fields(cls) if f.init}
+
+
+def _literal_choices(tp: Any) -> tuple:
+    """The values a ``Literal[...]`` (or ``Literal[...] | None``) annotation admits; ``()`` for other types."""
+    if get_origin(tp) is Literal:
+        return get_args(tp)
+    if get_origin(tp) in (Union, types.UnionType):
+        literals = [a for a in get_args(tp) if get_origin(a) is Literal]
+        if len(literals) == 1 and all(a is type(None) or get_origin(a) is Literal for a in get_args(tp)):
+            return get_args(literals[0]) + ((None,) if type(None) in get_args(tp) else ())
+    return ()
+
+
+@functools.cache
+def _choice_fields(cls: type) -> tuple[tuple[str, tuple], ...]:
+    return tuple((name, c) for name, tp in field_types(cls).items() if (c := _literal_choices(tp)))
+
+
+def check_choices(cfg: Any, prefix: str = "") -> None:
+    """One-line ``ValueError`` for a ``Literal``-typed field of the dataclass ``cfg`` holding another value.
+
+    For configs built in Python (recipes are already checked by :func:`from_dict`); call it from
+    ``__post_init__``. ``prefix`` is put before the field's name (e.g. ``"env.real."``).
+    """
+    for name, choices in _choice_fields(type(cfg)):
+        value = getattr(cfg, name)
+        if value not in choices:
+            hint = suggest(value, [str(c) for c in choices]) if isinstance(value, str) else ""
+            raise ValueError(f"{prefix}{name} must be one of {', '.join(repr(c) for c in choices)}; got {value!r}{hint}")
 
 
 def from_dict(cls: type, data: dict | None, *, key: str = "", source: str | None = None):

@@ -55,7 +55,7 @@ def _source(recipe: dict):
 
 # ------------------------------------------------------------------ config (no simulator)
 def test_config_validation_and_task_defaults():
-    with pytest.raises(ValueError, match=r"task must be one of door, hammer, pen; got 'dor'; did you mean 'door'\?"):
+    with pytest.raises(ValueError, match=r"task must be one of 'door', 'hammer', 'pen'; got 'dor'; did you mean 'door'\?"):
         AdroitEnvConfig(task="dor")
     with pytest.raises(RecipeError, match=r"env.task: must be one of 'door', 'hammer', 'pen'; got 'hamer'.*'hammer'"):
         from_dict(AdroitEnvConfig, {"task": "hamer"}, key="env")

@@ -17,6 +17,7 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from ddp.config import check_choices
 from ddp.keys import KeyedModule
 from ddp.registry import register
 
@@ -68,10 +69,7 @@ class DP3EncoderConfig:
             raise ValueError(f"points_per_block must be >= 0 (0: no blocking); got {self.points_per_block}")
         if self.out_channels <= 0:
             raise ValueError(f"out_channels must be positive; got {self.out_channels}")
-        if self.pool_backward not in ("auto", "winners", "dense"):
-            raise ValueError(f"pool_backward must be 'auto', 'winners' or 'dense'; got {self.pool_backward!r}")
-        if self.final_norm not in ("layernorm", "none"):
-            raise ValueError(f"final_norm must be 'layernorm' or 'none'; got {self.final_norm!r}")
+        check_choices(self)
 
 
 @register("encoder", "dp3", config=DP3EncoderConfig)

@@ -62,10 +62,11 @@ from typing import Literal  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from ddp.config import check_choices  # noqa: E402
 from ddp.envs.adroit_tasks import ADROIT_TASKS, CROP_MAX, CROP_MIN, HAND_JOINTS, AdroitTask  # noqa: E402
 from ddp.envs.base import ObservationOptions  # noqa: E402
 from ddp.envs.mujoco_render import CloudCamera, MujocoCloudEnv, SceneRenderer, use_egl  # noqa: E402
-from ddp.errors import DDPError, suggest  # noqa: E402
+from ddp.errors import DDPError  # noqa: E402
 from ddp.registry import register  # noqa: E402
 from ddp.safety import HoldSpec  # noqa: E402
 
@@ -130,9 +131,7 @@ class AdroitEnvConfig(ObservationOptions):
     obs_history: int = 1
 
     def __post_init__(self):
-        if self.task not in ADROIT_TASKS:
-            known = ", ".join(ADROIT_TASKS)
-            raise ValueError(f"task must be one of {known}; got {self.task!r}{suggest(self.task, ADROIT_TASKS)}")
+        check_choices(self)
         if self.max_episode_steps is None:
             self.max_episode_steps = self.task_spec.max_episode_steps
         self.check_observation_options(positive=("image_size",))
@@ -145,8 +144,6 @@ class AdroitEnvConfig(ObservationOptions):
                 raise ValueError(f"camera_quat needs 4 entries (w, x, y, z); got {self.camera_quat}")
             if not np.isclose(np.linalg.norm(self.camera_quat), 1.0, atol=1e-3):
                 raise ValueError(f"camera_quat must be a unit quaternion (w, x, y, z); got {self.camera_quat}")
-        if self.agent_pos not in ("hand", "arm_hand"):
-            raise ValueError(f"agent_pos must be 'hand' or 'arm_hand'; got {self.agent_pos!r}")
 
     @property
     def task_spec(self) -> AdroitTask:

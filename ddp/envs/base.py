@@ -61,7 +61,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from ddp.envs.disturbances import OCCLUSION_MODES, Occlusion
+from ddp.config import check_choices
+from ddp.envs.disturbances import Occlusion
 from ddp.envs.seeding import EpisodeSeeds
 from ddp.errors import DDPError
 from ddp.safety import require_finite
@@ -124,8 +125,7 @@ class ObservationOptions:
             raise ValueError(f"crop_min must be below crop_max on every axis; got {list(lo)} and {list(hi)}")
         if self.occlusion_chunk is not None and self.occlusion_chunk < 0:
             raise ValueError(f"occlusion_chunk must be >= 0; got {self.occlusion_chunk}")
-        if self.occlusion_mode not in OCCLUSION_MODES:
-            raise ValueError(f"occlusion_mode must be one of {OCCLUSION_MODES}; got {self.occlusion_mode!r}")
+        check_choices(self)
         if self.occlusion_chunk is not None and not self.render_point_cloud:
             raise ValueError("occlusion_chunk needs render_point_cloud=True (it corrupts the point cloud)")
 

@@ -34,6 +34,8 @@ from typing import Literal
 
 import numpy as np
 
+from ddp.config import check_choices
+
 __all__ = ["Displacement", "Occlusion", "OCCLUSION_MODES", "PAPER_METAWORLD_DISPLACEMENTS"]
 
 OCCLUSION_MODES = ("zeros", "drop", "noise")
@@ -70,8 +72,7 @@ class Displacement:
             raise ValueError(f"Displacement.delta must have 3 entries; got {self.delta!r}")
         if self.chunk < 0:
             raise ValueError(f"Displacement.chunk must be >= 0; got {self.chunk}")
-        if self.tracking not in ("single_stage", "two_stage"):
-            raise ValueError(f"Displacement.tracking must be 'single_stage' or 'two_stage'; got {self.tracking!r}")
+        check_choices(self, "Displacement.")
         if self.tracking == "two_stage":
             if self.snap_back_chunk is None or self.snap_back_chunk <= self.chunk:
                 raise ValueError(

@@ -43,6 +43,7 @@ from typing import Any, Literal, Mapping
 
 import numpy as np
 
+from ddp.config import check_choices
 from ddp.envs.franka.backend import CameraFrame, FrankaBackend
 
 __all__ = [
@@ -130,8 +131,7 @@ class RealBackendConfig:
 
     def __post_init__(self):
         p = "env.real"
-        if self.motion_wait not in ("period", "reached"):
-            raise ValueError(f"{p}.motion_wait must be 'period' or 'reached'; got {self.motion_wait!r}")
+        check_choices(self, f"{p}.")
         if not 0.0 < float(self.dynamics_factor) <= 1.0:
             raise ValueError(f"{p}.dynamics_factor must be in (0, 1]; got {self.dynamics_factor}")
         if not float(self.control_period) > 0.0:

@@ -1,0 +1,46 @@
+"""``ddp.config.check_choices``: configs built in Python reject a value their ``Literal`` annotation does not admit."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import pytest
+
+from ddp.config import check_choices
+
+
+@dataclass
+class _Cfg:
+    mode: Literal["fast", "slow"] = "fast"
+    level: Literal[1, 2] | None = None
+    name: str = "free text"
+
+    def __post_init__(self):
+        check_choices(self, "part.")
+
+
+def test_valid_values_pass_and_none_only_where_annotated():
+    _Cfg()
+    _Cfg(mode="slow", level=2, name="anything")
+    with pytest.raises(ValueError, match=r"^part\.mode must be one of 'fast', 'slow'; got None$"):
+        _Cfg(mode=None)
+
+
+def test_a_wrong_value_names_the_field_and_the_closest_choice():
+    with pytest.raises(ValueError, match=r"^part\.mode must be one of 'fast', 'slow'; got 'fats'; did you mean 'fast'\?$"):
+        _Cfg(mode="fats")
+    with pytest.raises(ValueError, match=r"^part\.level must be one of 1, 2, None; got 3$"):
+        _Cfg(level=3)
+
+
+def test_library_configs_use_it():
+    from ddp.encoders.dp3 import DP3EncoderConfig
+    from ddp.envs.disturbances import Displacement
+
+    with pytest.raises(ValueError, match=r"^pool_backward must be one of .*; did you mean 'winners'\?$"):
+        DP3EncoderConfig(pool_backward="winner")
+    with pytest.raises(ValueError, match=r"^final_norm must be one of 'layernorm', 'none'; got 'batchnorm'"):
+        DP3EncoderConfig(final_norm="batchnorm")
+    with pytest.raises(ValueError, match=r"^Displacement\.tracking must be one of .*'two_stage'\?$"):
+        Displacement(("obj",), (0.0, 0.0, 0.0), chunk=1, tracking="two")
