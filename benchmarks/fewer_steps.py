@@ -5,7 +5,7 @@ recipe with the world model off at the recipe's own step count (DDIM-10). Succes
 separately (``ddp eval ... --set policy.scheduler.num_inference_steps=k --set
 world_model.scheduler.num_inference_steps=k``); the README lists it.
 
-    python benchmarks/fewer_steps.py [--recipe recipes/metaworld/quickstart_ddp.yaml] [--steps 10,5,3]
+    python benchmarks/fewer_steps.py [--recipe recipes/metaworld/quickstart_ddp.yaml] [--steps 10,5,3,2,1]
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ ROWS = ("obs_to_action_ms", "controller_latency_ms", "control_cycle_ms")
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--recipe", default="recipes/metaworld/quickstart_ddp.yaml")
-    parser.add_argument("--steps", default="10,5,3", help="comma-separated DDIM step counts")
+    parser.add_argument("--steps", default="10,5,3,2,1", help="comma-separated DDIM step counts")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=10)
     args = parser.parse_args()
