@@ -222,3 +222,58 @@ def test_shipped_suites_expand(name, monkeypatch):
     suite = load_suite(ROOT / "suites" / f"{name}.yaml")
     assert name == "franka_cpu" or suite.reference["values"]["ddp"]["id"]  # the paper's numbers beside ours
     assert suite.name == name and len(suite.runs) == len(suite.tasks) * len(suite.methods) * len(suite.seeds)
+
+
+def test_metaworld_cpu_baselines_compose_as_documented():
+    """The shipped suite's DP3 and FlowPolicy runs are the quickstart's parts with the method overlays
+    (the README's "baselines against their reference code" table), trained as long as DDP."""
+    from pathlib import Path
+
+    suite = load_suite(Path(__file__).resolve().parents[1] / "suites" / "metaworld_cpu.yaml")
+    runs = {(r.task, r.method): r for r in suite.runs if r.seed == 0}
+    ddp, dp3, flow = (runs["push", m].recipe for m in ("ddp", "dp3", "flowpolicy"))
+    for r in (ddp, dp3, flow):
+        assert r["train"]["max_steps"] == 3000 and r["train"]["batch_size"] == 32
+        assert r["policy"]["denoiser"]["down_dims"] == [64, 128, 256] and r["task"]["num_points"] == 128
+        assert r["env"]["visible_sites"] == ["goal"] and r["env"]["crop_min"][2] == 0.005
+    assert ddp["world_model"]["enabled"] is not False
+    assert dp3["world_model"]["enabled"] is False and dp3["policy"]["scheduler"]["prediction_type"] == "sample"
+    assert flow["world_model"]["enabled"] is False
+    assert (flow["policy"]["horizon"], flow["policy"]["obs_steps"], flow["policy"]["action_steps"]) == (4, 2, 3)
+    assert flow["policy"]["scheduler"]["name"] == "consistency_flow"
+    assert flow["policy"]["scheduler"]["num_inference_steps"] == 1
+
+
+def test_flowpolicy_overlay_trains_and_acts(tmp_path, monkeypatch):
+    """recipes/methods/flowpolicy.yaml laid over a tiny recipe by a suite: it trains and returns 3-action chunks."""
+    from pathlib import Path
+
+    import torch
+    from tensordict import TensorDict
+
+    from ddp import build
+
+    monkeypatch.chdir(tmp_path)
+    overlay = Path(__file__).resolve().parents[1] / "recipes" / "methods" / "flowpolicy.yaml"
+    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(copy.deepcopy(TINY)))
+    (tmp_path / "suite.yaml").write_text(yaml.safe_dump(
+        {"name": "flow", "tasks": {"reach": "tiny.yaml"}, "methods": {"flowpolicy": {"overlay": str(overlay)}},
+         "seeds": [0], "protocols": ["id"]}))
+    recipe = load_suite(tmp_path / "suite.yaml").runs[0].recipe
+    (tmp_path / "flow.yaml").write_text(yaml.safe_dump(recipe))
+    model = build(str(tmp_path / "flow.yaml")).model
+    assert not model.has_world_model and model.horizon == 4 and model.action_steps == 3
+    g = torch.Generator().manual_seed(0)
+    P, A, D = TINY["task"]["num_points"], TINY["task"]["action_dim"], TINY["task"]["agent_pos_dim"]
+    batch = TensorDict({"point_cloud": torch.randn(8, 5, P, 3, generator=g), "agent_pos": torch.rand(8, 5, D, generator=g),
+                        "action": 2 * torch.rand(8, 5, A, generator=g) - 1}, batch_size=[8])
+    model.normalizer.fit({"point_cloud": batch["point_cloud"].reshape(-1, 3), "agent_pos": batch["agent_pos"].reshape(-1, D),
+                          "action": batch["action"].reshape(-1, A)})
+    losses = model.train().loss(batch)
+    assert losses["loss_wm"] == 0 and torch.isfinite(losses["loss"]) and losses["loss"] == losses["loss_bc"]
+    losses["loss"].backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+    out = model.eval()(TensorDict({"point_cloud": batch["point_cloud"][:2, :2], "agent_pos": batch["agent_pos"][:2, :2]},
+                                  batch_size=[2]))
+    assert out["action_chunk"].shape == (2, 4, A) and out["action"].shape == (2, 3, A)
+    assert torch.isfinite(out["action"]).all()
