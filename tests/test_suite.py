@@ -236,6 +236,7 @@ def test_metaworld_cpu_baselines_compose_as_documented():
         assert r["train"]["max_steps"] == 3000 and r["train"]["batch_size"] == 32
         assert r["policy"]["denoiser"]["down_dims"] == [64, 128, 256] and r["task"]["num_points"] == 128
         assert r["env"]["visible_sites"] == ["goal"] and r["env"]["crop_min"][2] == 0.005
+        assert r["data"]["episodes"] == 50 and r["data"]["path"] == "data/metaworld/{task}_suite50"  # the paper's 50
     assert ddp["world_model"]["enabled"] is not False
     assert dp3["world_model"]["enabled"] is False and dp3["policy"]["scheduler"]["prediction_type"] == "sample"
     assert flow["world_model"]["enabled"] is False
