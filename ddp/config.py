@@ -139,9 +139,10 @@ def _literal_choices(tp: Any) -> tuple:
     if get_origin(tp) is Literal:
         return get_args(tp)
     if get_origin(tp) in (Union, types.UnionType):
-        literals = [a for a in get_args(tp) if get_origin(a) is Literal]
-        if len(literals) == 1 and all(a is type(None) or get_origin(a) is Literal for a in get_args(tp)):
-            return get_args(literals[0]) + ((None,) if type(None) in get_args(tp) else ())
+        args = get_args(tp)
+        if all(a is type(None) or get_origin(a) is Literal for a in args):  # Literal[...] | Literal[...] | None
+            return tuple(c for a in args if a is not type(None) for c in get_args(a)) + \
+                ((None,) if type(None) in args else ())
     return ()
 
 

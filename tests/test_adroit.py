@@ -299,7 +299,7 @@ def test_demos_are_successful_cached_and_reused(tmp_path, monkeypatch):
     again = _source(_adroit_recipe(tmp_path)).load()
     assert torch.equal(again.steps["point_cloud"], steps["point_cloud"])
     assert torch.equal(again.episode_ends, demos.episode_ends)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["door"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".door.lock", "door"]  # the cache and its generation lock
     # another env config does not match the cache: it would regenerate
     assert _source(_adroit_recipe(tmp_path, max_steps=150)).cached_meta() is None
 

@@ -44,3 +44,27 @@ def test_library_configs_use_it():
         DP3EncoderConfig(final_norm="batchnorm")
     with pytest.raises(ValueError, match=r"^Displacement\.tracking must be one of .*'two_stage'\?$"):
         Displacement(("obj",), (0.0, 0.0, 0.0), chunk=1, tracking="two")
+
+
+@dataclass
+class _Sub(_Cfg):
+    """A subclass whose base's __post_init__ does the check: the subclass's own choices count too."""
+
+    extra: Literal["x"] | Literal["y"] | None = None
+
+
+def test_a_subclass_and_a_union_of_literals_are_checked():
+    _Sub(extra="y")
+    _Sub(extra=None)
+    with pytest.raises(ValueError, match=r"^part\.extra must be one of 'x', 'y', None; got 'z'"):
+        _Sub(extra="z")
+
+
+def test_env_and_robot_configs_use_it():
+    from ddp.envs.disturbances import Occlusion
+    from ddp.envs.franka.real import RealBackendConfig
+
+    with pytest.raises(ValueError, match=r"^env\.real\.motion_wait must be one of 'period', 'reached'; got 'reach'"):
+        RealBackendConfig(motion_wait="reach")
+    with pytest.raises(ValueError, match=r"^Occlusion\.mode must be one of 'zeros', 'drop', 'noise'; got 'zero'"):
+        Occlusion(chunk=1, mode="zero")

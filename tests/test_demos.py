@@ -276,14 +276,42 @@ def test_metaworld_cache_is_replaced_atomically(tmp_path, monkeypatch):
     monkeypatch.setattr(MetaWorldExpertDemos, "generate", lambda self, progress=True: 1 / 0)
     with pytest.raises(ZeroDivisionError):
         _source(_mw_recipe(tmp_path, episodes=2, max_steps=99)).load()
-    # the failed regeneration left the old cache in place and no temporary directories
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["button-press"]
+    # the failed regeneration left the old cache in place and no temporary directories (only the lock file)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".button-press.lock", "button-press"]
     assert _source(_mw_recipe(tmp_path, episodes=2)).load().num_episodes == 2
     # a directory that is not a cache is never overwritten
     (tmp_path / "foreign").mkdir()
     (tmp_path / "foreign" / "data.txt").write_text("mine")
     with pytest.raises(DDPError, match="not a metaworld_expert demo cache"):
         _source(_mw_recipe(tmp_path, path=str(tmp_path / "foreign"))).load()
+
+
+def test_runs_started_together_generate_a_cache_once(tmp_path, monkeypatch):
+    """Two processes (here threads: flock locks conflict between open files) preparing the same cache at once:
+    the second waits for the first one's demos instead of generating them again."""
+    pytest.importorskip("metaworld")
+    import threading
+    import time
+
+    from ddp.data.sources.metaworld_expert import MetaWorldExpertDemos
+
+    fake, calls = _synthetic(2), []
+
+    def slow_generate(self, progress=True):
+        calls.append(threading.get_ident())
+        time.sleep(0.5)
+        return fake, {"attempts": 2}
+
+    monkeypatch.setattr(MetaWorldExpertDemos, "generate", slow_generate)
+    results = []
+    threads = [threading.Thread(target=lambda: results.append(_source(_mw_recipe(tmp_path, episodes=2)).prepare(
+        progress=False))) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1 and sorted(r["generated"] for r in results) == [False, True]
+    assert all(r["cache_episodes"] == 2 for r in results)
 
 
 def test_metaworld_expert_needs_a_metaworld_env(tmp_path):

@@ -224,12 +224,14 @@ def test_shipped_suites_expand(name, monkeypatch):
     assert suite.name == name and len(suite.runs) == len(suite.tasks) * len(suite.methods) * len(suite.seeds)
 
 
-def test_metaworld_cpu_baselines_compose_as_documented():
+def test_metaworld_cpu_baselines_compose_as_documented(monkeypatch):
     """The shipped suite's DP3 and FlowPolicy runs are the quickstart's parts with the method overlays
     (the README's "baselines against their reference code" table), trained as long as DDP."""
     from pathlib import Path
 
-    suite = load_suite(Path(__file__).resolve().parents[1] / "suites" / "metaworld_cpu.yaml")
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(root)  # the suite names its recipes relative to the repository
+    suite = load_suite(root / "suites" / "metaworld_cpu.yaml")
     runs = {(r.task, r.method): r for r in suite.runs if r.seed == 0}
     ddp, dp3, flow = (runs["push", m].recipe for m in ("ddp", "dp3", "flowpolicy"))
     for r in (ddp, dp3, flow):

@@ -17,12 +17,18 @@ how to build the expert (``make_expert``). The rest is here:
   damaged cache is regenerated once;
 * the cache is written to a temporary sibling directory and renamed into
   place, so an interrupted run never leaves a half-written cache, and a
-  directory that is not a cache of this format is never overwritten.
+  directory that is not a cache of this format is never overwritten;
+* checking and (re)generating happen under an exclusive ``flock`` on the
+  sibling file ``.<name>.lock``, so runs started together on one machine
+  (``ddp suite --workers``, a local Ray) wait for the first one's demos
+  instead of generating the same cache again.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import hashlib
 import json
 import logging
@@ -45,6 +51,20 @@ __all__ = ["CachedDemosConfig", "CachedExpertDemos", "GENERATION_FILE", "demo_en
 log = logging.getLogger(__name__)
 
 GENERATION_FILE = "generation.json"
+
+
+@contextlib.contextmanager
+def cache_lock(path: Path):
+    """Hold an exclusive (blocking) ``flock`` on ``<path.parent>/.<path.name>.lock``; the kernel drops it if
+    the process dies."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path.parent / f".{path.name}.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
 
 
 @dataclass
@@ -264,14 +284,15 @@ class CachedExpertDemos:
         that generated the cache).
         """
         regenerate = self.cfg.regenerate if regenerate is None else regenerate
-        meta = None if regenerate else self.cached_meta()
-        generated = meta is None
-        if generated:
-            self._check_path_is_ours()
-            log.info("generating %d %s demos into %s", self.cfg.episodes, self.label, self.path)
-            demos, stats = self.generate(progress=progress)
-            self.save(demos, stats)
-            meta = {"episodes": demos.num_episodes, "stats": stats}
+        with cache_lock(self.path):  # another process generating this cache: wait for it, then use it
+            meta = None if regenerate else self.cached_meta()
+            generated = meta is None
+            if generated:
+                self._check_path_is_ours()
+                log.info("generating %d %s demos into %s", self.cfg.episodes, self.label, self.path)
+                demos, stats = self.generate(progress=progress)
+                self.save(demos, stats)
+                meta = {"episodes": demos.num_episodes, "stats": stats}
         return {
             "path": self.path,
             "generated": generated,

@@ -53,7 +53,6 @@ only the frames a chunked policy reads (``ddp.envs.chunked.chunk_render_config``
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
@@ -62,7 +61,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from ddp.config import check_choices
-from ddp.envs.disturbances import Occlusion
+from ddp.envs.disturbances import Occlusion, OcclusionMode
 from ddp.envs.seeding import EpisodeSeeds
 from ddp.errors import DDPError
 from ddp.safety import require_finite
@@ -103,7 +102,7 @@ class ObservationOptions:
     crop_max: tuple[float, float, float] | None = (1.0, 1.0, 1.0)
     occlusion_chunk: int | None = None
     occlusion_chunks: int = 1
-    occlusion_mode: Literal["zeros", "drop", "noise"] = "zeros"
+    occlusion_mode: OcclusionMode = "zeros"
 
     def __post_init__(self):
         self.check_observation_options()

@@ -30,7 +30,7 @@ is the paper's table verbatim (the MetaWorld binding lives in
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
@@ -38,7 +38,8 @@ from ddp.config import check_choices
 
 __all__ = ["Displacement", "Occlusion", "OCCLUSION_MODES", "PAPER_METAWORLD_DISPLACEMENTS"]
 
-OCCLUSION_MODES = ("zeros", "drop", "noise")
+OcclusionMode = Literal["zeros", "drop", "noise"]
+OCCLUSION_MODES = get_args(OcclusionMode)
 
 
 @dataclass(frozen=True)
@@ -113,15 +114,14 @@ class Occlusion:
 
     chunk: int
     length: int = 1
-    mode: Literal["zeros", "drop", "noise"] = "zeros"
+    mode: OcclusionMode = "zeros"
 
     def __post_init__(self):
         if self.chunk < 0:
             raise ValueError(f"Occlusion.chunk must be >= 0; got {self.chunk}")
         if self.length < 1:
             raise ValueError(f"Occlusion.length must be >= 1 chunk; got {self.length}")
-        if self.mode not in OCCLUSION_MODES:
-            raise ValueError(f"Occlusion.mode must be one of {OCCLUSION_MODES}; got {self.mode!r}")
+        check_choices(self, "Occlusion.")
 
     def covers(self, t: int, chunk_len: int) -> bool:
         """Whether the observation after ``t`` actions is occluded."""
