@@ -66,5 +66,9 @@ def test_env_and_robot_configs_use_it():
 
     with pytest.raises(ValueError, match=r"^env\.real\.motion_wait must be one of 'period', 'reached'; got 'reach'"):
         RealBackendConfig(motion_wait="reach")
+    from ddp.envs.franka.env import FrankaEnvConfig
+
+    with pytest.raises(ValueError, match=r"^backend must be one of 'sim', 'real'; got 'sm'; did you mean 'sim'\?$"):
+        FrankaEnvConfig(backend="sm")  # checked by the shared observation options
     with pytest.raises(ValueError, match=r"^Occlusion\.mode must be one of 'zeros', 'drop', 'noise'; got 'zero'"):
         Occlusion(chunk=1, mode="zero")

@@ -9,7 +9,7 @@ import math
 import pytest
 import yaml
 
-from conftest import TINY
+from conftest import ROOT, TINY
 from ddp.errors import RecipeError
 from ddp.suite import ResultStore, aggregate, load_suite, run_suite, select, write_suite_report
 from ddp.suite.report import wilson
@@ -216,8 +216,6 @@ def test_reference_rows_sit_under_their_rows_and_average_the_same_tasks(tmp_path
 
 @pytest.mark.parametrize("name", ["metaworld_smoke", "metaworld_cpu", "adroit_cpu", "franka_cpu", "table1"])
 def test_shipped_suites_expand(name, monkeypatch):
-    from conftest import ROOT
-
     monkeypatch.chdir(ROOT)  # suite paths are relative to the repository root
     suite = load_suite(ROOT / "suites" / f"{name}.yaml")
     assert name == "franka_cpu" or suite.reference["values"]["ddp"]["id"]  # the paper's numbers beside ours
@@ -227,11 +225,8 @@ def test_shipped_suites_expand(name, monkeypatch):
 def test_metaworld_cpu_baselines_compose_as_documented(monkeypatch):
     """The shipped suite's DP3 and FlowPolicy runs are the quickstart's parts with the method overlays
     (the README's "baselines against their reference code" table), trained as long as DDP."""
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[1]
-    monkeypatch.chdir(root)  # the suite names its recipes relative to the repository
-    suite = load_suite(root / "suites" / "metaworld_cpu.yaml")
+    monkeypatch.chdir(ROOT)  # the suite names its recipes relative to the repository
+    suite = load_suite(ROOT / "suites" / "metaworld_cpu.yaml")
     runs = {(r.task, r.method): r for r in suite.runs if r.seed == 0}
     ddp, dp3, flow = (runs["push", m].recipe for m in ("ddp", "dp3", "flowpolicy"))
     for r in (ddp, dp3, flow):
@@ -249,15 +244,13 @@ def test_metaworld_cpu_baselines_compose_as_documented(monkeypatch):
 
 def test_flowpolicy_overlay_trains_and_acts(tmp_path, monkeypatch):
     """recipes/methods/flowpolicy.yaml laid over a tiny recipe by a suite: it trains and returns 3-action chunks."""
-    from pathlib import Path
-
     import torch
     from tensordict import TensorDict
 
     from ddp import build
 
     monkeypatch.chdir(tmp_path)
-    overlay = Path(__file__).resolve().parents[1] / "recipes" / "methods" / "flowpolicy.yaml"
+    overlay = ROOT / "recipes" / "methods" / "flowpolicy.yaml"
     (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(copy.deepcopy(TINY)))
     (tmp_path / "suite.yaml").write_text(yaml.safe_dump(
         {"name": "flow", "tasks": {"reach": "tiny.yaml"}, "methods": {"flowpolicy": {"overlay": str(overlay)}},

@@ -131,7 +131,7 @@ class AdroitEnvConfig(ObservationOptions):
     obs_history: int = 1
 
     def __post_init__(self):
-        check_choices(self)
+        check_choices(self)  # before task_spec reads the task (check_observation_options checks them too, later)
         if self.max_episode_steps is None:
             self.max_episode_steps = self.task_spec.max_episode_steps
         self.check_observation_options(positive=("image_size",))

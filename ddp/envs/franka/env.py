@@ -78,7 +78,6 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from torchrl.data import Bounded, Composite, Unbounded  # noqa: E402
 
-from ddp.config import check_choices  # noqa: E402
 from ddp.envs.base import ObservationOptions, PointCloudEnv  # noqa: E402
 from ddp.envs.disturbances import Displacement  # noqa: E402
 from ddp.envs.franka.control import ACTION_DIM, AGENT_POS_DIM, FrankaControl, agent_pos, mat_to_quat  # noqa: E402
@@ -168,7 +167,6 @@ class FrankaEnvConfig(ObservationOptions):
     def __post_init__(self):
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {', '.join(TASKS)}; got {self.task!r}{suggest(self.task, TASKS)}")
-        check_choices(self)
         # task defaults are filled in, so that a dumped recipe (and a demo cache key) holds the values used
         task = TASKS[self.task]
         if self.max_episode_steps is None:
