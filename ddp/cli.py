@@ -178,7 +178,7 @@ def cmd_detect(args) -> int:
         rep = detect(exp, episodes=args.episodes, calibration_episodes=args.calibration_episodes, alpha=args.alpha,
                      seed=args.seed, disturbances=disturbances, env=_env_overrides(args.env), variants=variants,
                      progress=not args.quiet, num_envs=args.num_envs or 1, parallel=args.parallel,
-                     samples=args.samples, rollouts=rollouts)
+                     samples=args.samples, rollouts=rollouts, threshold_on=args.threshold_on)
     except ValueError as err:
         raise DDPError(str(err)) from None
     out = Path(args.output_dir or Path(args.checkpoint).parent / "detect")
@@ -356,7 +356,8 @@ def make_parser() -> argparse.ArgumentParser:
                    help="without RECIPE: import the plugin modules the checkpoint's recipe lists (runs their code)")
     p.add_argument("--checkpoint", required=True, help="checkpoint written by ddp train (last.pt)")
     p.add_argument("--episodes", type=int, default=10, help="test episodes per condition (ID and each disturbance)")
-    p.add_argument("--calibration-episodes", type=int, help="ID calibration episodes (default: eval.calibration_episodes)")
+    p.add_argument("--calibration-episodes", type=int, help="ID calibration episodes (default: eval.calibration_episodes; more are rolled out while too few succeed to set tau on)")
+    p.add_argument("--threshold-on", choices=["successful", "all"], help="held-out ID episodes that set every statistic's tau (default: each statistic's own, successful unless it says all)")
     p.add_argument("--alpha", type=float, default=0.05, help="target false-alarm rate per ID episode (default 0.05)")
     p.add_argument("--disturbances", default="ood_base", help="comma-separated protocols that disturb the episodes, run with the base policy (default ood_base; e.g. ood_base,occlusion)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE", help="env override for the disturbed episodes, e.g. --env displacement_chunk=4 --env 'displacement_delta=[0.1,0,0]' (repeatable)")

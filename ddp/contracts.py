@@ -74,6 +74,17 @@ class Detector(Protocol):
     def reset(self) -> None: ...
 
 
+class NeedMoreEpisodes(ValueError):
+    """Raised by :meth:`Calibratable.calibrate` when the episodes it got cannot set its threshold yet
+    (e.g. too few successful ones): ``more`` is its estimate of how many further ID episodes it needs.
+    ``ddp eval`` then rolls out that many more (new seeds, up to ``eval.max_calibration_episodes`` in
+    all) and calls ``calibrate`` again with every episode so far, in the order they were run."""
+
+    def __init__(self, message: str, more: int):
+        super().__init__(message)
+        self.more = max(1, int(more))
+
+
 @runtime_checkable
 class Calibratable(Protocol):
     """A detector whose threshold is calibrated from ID rollouts (``ddp eval`` does it when it is unset)."""
@@ -81,7 +92,8 @@ class Calibratable(Protocol):
     needs_calibration: bool
 
     def calibrate(self, episodes, *, point_dims: int = 0) -> float:
-        """Fit on ID episodes (dicts with ``latent_real`` / ``latent_pred`` arrays [chunks, M, D]); tau."""
+        """Fit on ID episodes (dicts with ``latent_real`` / ``latent_pred`` arrays [chunks, M, D] and
+        ``success``); return tau, or raise :class:`NeedMoreEpisodes`."""
 
     def calibration(self) -> dict: ...
 

@@ -20,7 +20,9 @@ controller). From these :func:`detection_metrics` counts, per protocol:
 :func:`detect` is the offline comparison behind ``ddp detect``: one set of ID
 calibration rollouts, ID test rollouts and disturbed rollouts of the base
 policy with the world model forecasting every cycle, on which every score
-variant is calibrated to the same false-alarm rate and then scored. Until its
+variant is calibrated to the same false-alarm rate and then scored (its tau set on
+the successful held-out ID episodes unless the variant says ``threshold_on: all``;
+more ID episodes are rolled out while too few succeeded, as ``ddp eval`` does). Until its
 first alarm a sticky detector leaves the base policy's behaviour unchanged, so
 the first alarm found here is the one the closed-loop controller raises.
 """
@@ -152,6 +154,8 @@ SCORE_VARIANTS: dict[str, dict] = {
     "point_dims": {"dims": "point"},
     "point_newest": {"dims": "point", "frames": "newest"},
     "point_newest_per_chunk": {"dims": "point", "frames": "newest", "per_chunk": True},
+    # tau set on every held-out ID episode, failing ones too (every other variant: the successful ones)
+    "point_newest_per_chunk_tau_all": {"dims": "point", "frames": "newest", "per_chunk": True, "threshold_on": "all"},
     "point_newest_per_chunk_q90": {"dims": "point", "frames": "newest", "per_chunk": True, "chunk_quantile": 0.9},
     "point_newest_per_chunk_w2_q90": {"dims": "point", "frames": "newest", "per_chunk": True, "window": 2,
                                       "chunk_quantile": 0.9},
@@ -189,7 +193,8 @@ def _statistics(episodes: list[dict], spec, cal, point_dims: int) -> list[list[f
 def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, alpha: float = 0.05,
            seed: int | None = None, disturbances: tuple[str, ...] = ("ood_base",), env: dict | None = None,
            variants: dict[str, dict] | None = None, progress: bool = True, num_envs: int = 1,
-           parallel: bool = False, samples: int | None = None, rollouts: dict | None = None) -> dict:
+           parallel: bool = False, samples: int | None = None, rollouts: dict | None = None,
+           threshold_on: str | None = None) -> dict:
     """Compare detection statistics on ``exp``'s checkpoint (see the module docstring).
 
     ``disturbances``: protocols whose env disturbs the episodes (``ood_base``: the displacement,
@@ -198,8 +203,10 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
     samples per forecast (default the recipe's ``controller.forecast_samples``; the ``spread`` statistics
     need more than one, and every statistic then compares against their mean). ``rollouts``: the
     ``"rollouts"`` of an earlier report (see :func:`save_rollouts` / :func:`load_rollouts`) to score
-    new statistics on without rolling out again.
+    new statistics on without rolling out again. ``threshold_on`` (``successful`` / ``all``): which held-out
+    ID episodes set every variant's tau (default: each variant's own, ``successful`` unless it says).
     """
+    from ddp.contracts import NeedMoreEpisodes
     from ddp.detectors.discrepancy import DiscrepancyConfig
     from ddp.detectors.scores import fit_calibration
 
@@ -225,15 +232,37 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
         cal_eps, test = rollouts["calibration"], {n: rollouts[n] for n in ("id", *disturbances)}
         n_cal, episodes = len(cal_eps), len(test["id"])
     pd = exp.model.point_dims
+
+    def calibrate(options: dict):
+        cfg = DiscrepancyConfig(alpha=alpha, **{**options, **({"threshold_on": threshold_on} if threshold_on else {})})
+        return cfg.spec, fit_calibration(cal_eps, cfg.spec, alpha=alpha, point_dims=pd, fit_fraction=cfg.fit_fraction,
+                                         threshold_on=cfg.threshold_on)
+
+    if rollouts is None:  # as ddp eval does: more ID calibration episodes while a variant lacks successful ones
+        cap = max(n_cal, cfg.max_calibration_episodes)
+        while len(cal_eps) < cap:
+            more = 0
+            for options in variants.values():
+                try:
+                    calibrate(options)
+                except NeedMoreEpisodes as short:
+                    more = max(more, short.more)
+                except ValueError:
+                    pass  # reported in its row below
+            if not more:
+                break
+            cal_eps = cal_eps + _rollouts(exp, "id", episodes=min(more, cap - len(cal_eps)),
+                                          seed=max(e["seed"] for e in cal_eps) + 1, env={}, **runs)
+        n_cal = len(cal_eps)
     rows, traces = [], {}
     for label, options in variants.items():
-        spec = DiscrepancyConfig(alpha=alpha, **options).spec
         try:
-            cal = fit_calibration(cal_eps, spec, alpha=alpha, point_dims=pd)
-        except ValueError as err:  # e.g. point dims on an encoder without a point part
+            spec, cal = calibrate(options)
+        except ValueError as err:  # e.g. point dims on an encoder without a point part, too few successful episodes
             rows.append({"score": label, "options": options, "error": str(err)})
             continue
         row = {"score": label, "options": options, "description": spec.label(), "tau": cal.tau,
+               "threshold_on": cal.threshold_on,
                "fit_episodes": cal.fit_episodes, "threshold_episodes": cal.threshold_episodes}
         stats = {name: _statistics(eps, spec, cal, pd) for name, eps in test.items()}
         traces[label] = {"tau": cal.tau, "reference": cal.reference, **stats}

@@ -198,8 +198,24 @@ def calibration_episodes(exp, *, episodes: int, seed: int, num_envs: int = 1, pr
 
 
 def calibrate_detector(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
-                       parallel: bool = False) -> float:
-    """Fit a calibratable detector (statistic and threshold) on ID rollouts; return its tau."""
+                       parallel: bool = False, max_episodes: int | None = None) -> float:
+    """Fit a calibratable detector (statistic and threshold) on ID rollouts; return its tau.
+
+    ``episodes`` ID episodes first; while the detector asks for more (:class:`ddp.contracts.NeedMoreEpisodes`,
+    e.g. too few successful ones to set tau on), as many more as it asks for, on the next unused seeds,
+    up to ``max_episodes`` in all (default ``eval.max_calibration_episodes``)."""
+    from ddp.contracts import NeedMoreEpisodes
+
+    cap = max(episodes, max_episodes if max_episodes is not None else exp.recipe.eval.max_calibration_episodes)
     runs = calibration_episodes(exp, episodes=episodes, seed=seed, num_envs=num_envs, progress=progress,
                                 parallel=parallel)
-    return detector.calibrate(runs, point_dims=exp.model.point_dims)
+    while True:
+        try:
+            return detector.calibrate(runs, point_dims=exp.model.point_dims)
+        except NeedMoreEpisodes as short:
+            if len(runs) >= cap:
+                raise ValueError(f"{short} after {len(runs)} ID calibration episodes, the most "
+                                 "eval.max_calibration_episodes allows (raise it, or alpha)") from None
+            more = min(short.more, cap - len(runs))
+            runs = runs + calibration_episodes(exp, episodes=more, seed=max(e["seed"] for e in runs) + 1,
+                                               num_envs=num_envs, progress=progress, parallel=parallel)

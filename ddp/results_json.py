@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from typing import Any
 
 
@@ -22,5 +23,15 @@ def strict(value: Any) -> Any:
     return value
 
 
+_SCALAR = r"(?:-?\d[\d.eE+-]*|null|true|false)"
+# an indented list of scalars only: json.dumps opens it with "[" and a newline (a newline inside a
+# JSON string is always escaped, so this never matches text within a string)
+_SCALAR_LIST = re.compile(r"\[\n\s*(" + _SCALAR + r"(?:,\n\s*" + _SCALAR + r")*)\n\s*\]")
+
+
 def dumps(value: Any, indent: int | None = 1) -> str:
-    return json.dumps(strict(value), indent=indent, allow_nan=False)
+    """Strict JSON; indented, with each list of numbers (a per-chunk trace) kept on one line."""
+    text = json.dumps(strict(value), indent=indent, allow_nan=False)
+    if indent is None:
+        return text
+    return _SCALAR_LIST.sub(lambda m: "[" + re.sub(r",\n\s*", ", ", m.group(1)) + "]", text)

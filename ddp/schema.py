@@ -169,6 +169,9 @@ class EvalConfig:
     num_envs: int = 1
     max_steps: int | None = None  # env steps per episode (default: the env's own limit)
     calibration_episodes: int = 40  # ID episodes calibrating a detector (half fit its statistic, half set tau)
+    # a detector that sets tau on successful ID episodes only, short of them after calibration_episodes:
+    # further ID episodes are rolled out, up to this many in all (then a one-line error)
+    max_calibration_episodes: int = 160
     occlusion_chunk: int = 3
     occlusion_chunks: int = 2
     parallel: bool = False  # num_envs > 1: one worker process per env (torchrl ParallelEnv) instead of SerialEnv
@@ -187,6 +190,9 @@ class EvalConfig:
             raise ValueError(f"episodes must be >= 1; got {self.episodes}")
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1; got {self.num_envs}")
+        if self.max_calibration_episodes < self.calibration_episodes:
+            raise ValueError(f"max_calibration_episodes must be >= calibration_episodes ({self.calibration_episodes}); "
+                             f"got {self.max_calibration_episodes}")
         if self.video_episodes < 0:
             raise ValueError(f"video_episodes must be >= 0; got {self.video_episodes}")
         if self.video_size < 16 or self.video_fps < 1:

@@ -98,7 +98,8 @@ def test_per_chunk_calibration_reaches_every_protocol(exp, tmp_path):
     from ddp.schema import resolve_part
 
     exp.parts["controller.detector"] = resolve_part(
-        "detector", {"name": "discrepancy", "tau": None, "per_chunk": True}, key="controller.detector", source="<test>"
+        "detector", {"name": "discrepancy", "tau": None, "per_chunk": True, "threshold_on": "all"},
+        key="controller.detector", source="<test>",  # an untrained policy: no ID episode succeeds
     )
     exp.recipe.eval.calibration_episodes = 1
     exp.parts["controller.detector"].config.alpha = 0.5  # 2 held-out episodes suffice for alpha 0.5
@@ -244,7 +245,8 @@ def test_tau_calibrated_from_id_rollouts_without_forecast_every_cycle(exp, tmp_p
     from ddp.schema import resolve_part
 
     exp.parts["controller.detector"] = resolve_part(
-        "detector", {"name": "discrepancy", "tau": None, "alpha": 0.5}, key="controller.detector", source="<test>"
+        "detector", {"name": "discrepancy", "tau": None, "alpha": 0.5, "threshold_on": "all"},
+        key="controller.detector", source="<test>",  # an untrained policy: no ID episode succeeds
     )
     exp.recipe.eval.calibration_episodes = 1
     exp.parts["controller.detector"].config.alpha = 0.05  # needs 19 held-out ID episodes: one line says so

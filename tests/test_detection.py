@@ -17,12 +17,15 @@ from ddp.detectors.discrepancy import DiscrepancyConfig, DiscrepancyDetector
 from ddp.detectors.scores import ScoreSpec, conformal_threshold, episode_statistic, fit_calibration, residual_score
 
 
-def episodes_from_scores(scores: np.ndarray, m: int = 2, d: int = 4) -> list[dict]:
-    """Latent windows whose paper D_R-I is exactly ``scores[e, c]`` (NaN: no forecast)."""
+def episodes_from_scores(scores: np.ndarray, m: int = 2, d: int = 4, success=None) -> list[dict]:
+    """Latent windows whose paper D_R-I is exactly ``scores[e, c]`` (NaN: no forecast); every episode
+    successful unless ``success`` says otherwise (one flag per episode)."""
     out = []
-    for row in np.atleast_2d(scores):
+    rows = np.atleast_2d(scores)
+    flags = [True] * len(rows) if success is None else list(success)
+    for row, ok in zip(rows, flags):
         pred = np.sqrt(row)[:, None, None] * np.ones((1, m, d))
-        out.append({"latent_real": np.zeros_like(pred), "latent_pred": pred})
+        out.append({"latent_real": np.zeros_like(pred), "latent_pred": pred, "success": bool(ok)})
     return out
 
 
@@ -62,14 +65,82 @@ def test_per_chunk_scale_is_the_chosen_id_quantile_of_each_phase():
     for q in (0.5, 0.9):
         spec = ScoreSpec(per_chunk=True, window=0, chunk_quantile=q)
         cal = fit_calibration(eps, spec, alpha=0.2, fit_fraction=0.5)
-        expected = np.quantile(scores[:10, 1:], q, axis=0)  # the 10 fitting episodes, chunk by chunk
-        assert np.allclose(cal.chunk_scale[1:], expected)
+        fitting = scores[1::2, 1:]  # the 10 fitting episodes (every second one), chunk by chunk
+        assert np.allclose(cal.chunk_scale[1:], np.quantile(fitting, q, axis=0))
         # a chunk past the longest fitting episode is scaled by the same quantile over all chunks
-        assert cal.scale_at(99) == pytest.approx(np.quantile(scores[:10, 1:], q))
+        assert cal.scale_at(99) == pytest.approx(np.quantile(fitting, q))
     assert DiscrepancyConfig(per_chunk=True, chunk_quantile=0.9).spec.chunk_quantile == 0.9
     for bad in (1.0, 0.0, float("nan")):
         with pytest.raises(ValueError, match="chunk_quantile"):
             DiscrepancyConfig(per_chunk=True, chunk_quantile=bad)
+
+
+def test_tau_is_set_on_successful_held_out_episodes_and_more_are_asked_for():
+    """threshold_on: successful ignores failing ID episodes (here the ones with huge residuals) when
+    setting tau, and asks for more episodes while too few held-out ones succeeded; the fit / threshold
+    split is by index, so episodes added later never move an earlier one across it."""
+    from ddp.contracts import NeedMoreEpisodes
+    from ddp.detectors.scores import split_fit
+
+    assert split_fit(6, 0.5) == [False, True, False, True, False, True]
+    assert split_fit(40, 0.5)[:6] == split_fit(6, 0.5) and sum(split_fit(40, 0.25)) == 10
+    rng = np.random.default_rng(0)
+    n = 60
+    scores = rng.gamma(2.0, 0.5, size=(n, 6))
+    failing = np.arange(n) % 5 == 4  # every fifth episode fails, its residual wandering far
+    scores[failing, 3:] *= 50
+    scores[:, 0] = np.nan
+    eps = episodes_from_scores(scores, success=~failing)
+    spec = ScoreSpec(per_chunk=True)  # fitted on half the episodes, tau on the other half
+    everything = fit_calibration(eps, spec, alpha=0.05)
+    nominal = fit_calibration(eps, spec, alpha=0.05, threshold_on="successful")
+    held = ~np.array(split_fit(n, 0.5))
+    assert everything.chunk_scale == nominal.chunk_scale  # the same fit: only tau's episodes differ
+    maxima = [np.nanmax(r) for r in nominal.reference]
+    assert len(maxima) == nominal.threshold_episodes == int((held & ~failing).sum()) == 24
+    assert nominal.tau == pytest.approx(conformal_threshold(maxima, 0.05))
+    assert everything.threshold_episodes == 30 and nominal.tau < everything.tau / 10
+    assert nominal.threshold_on == "successful" and everything.threshold_on == "all"
+    # 40 episodes: 16 successful held out, alpha 0.05 needs 19: about 3 / (0.5 x 0.8) more
+    with pytest.raises(NeedMoreEpisodes, match="needs 19 successful held-out") as short:
+        fit_calibration(eps[:40], spec, alpha=0.05, threshold_on="successful")
+    assert 6 <= short.value.more <= 12
+    with pytest.raises(ValueError, match="none of the 20 held-out ID calibration episodes succeeded"):
+        fit_calibration(episodes_from_scores(scores[:40], success=[False] * 40), spec, alpha=0.05,
+                        threshold_on="successful")
+    with pytest.raises(ValueError, match="record their success"):
+        fit_calibration([{k: v for k, v in e.items() if k != "success"} for e in eps], spec, alpha=0.05,
+                        threshold_on="successful")
+    with pytest.raises(ValueError, match="threshold_on must be one of"):
+        DiscrepancyConfig(threshold_on="succesful")
+
+
+def test_eval_rolls_out_more_calibration_episodes_until_enough_succeeded(tiny_recipe, monkeypatch):
+    """ddp eval's calibration asks the detector; while it wants more, more ID episodes are rolled out on
+    fresh seeds (up to eval.max_calibration_episodes, then one line says so)."""
+    from ddp import build
+    from ddp import eval_runner
+
+    rng = np.random.default_rng(1)
+    calls = []
+
+    def fake_rollouts(exp, *, episodes, seed, **kw):
+        calls.append((seed, episodes))
+        seeds = range(seed, seed + episodes)
+        eps = episodes_from_scores(rng.gamma(2.0, 0.5, size=(episodes, 5)), success=[(s // 2) % 2 == 0 for s in seeds])
+        return [{**e, "seed": s} for e, s in zip(eps, seeds)]
+
+    monkeypatch.setattr(eval_runner, "calibration_episodes", fake_rollouts)
+    exp = build(tiny_recipe)
+    det = DiscrepancyDetector(DiscrepancyConfig(alpha=0.05, per_chunk=True))
+    tau = eval_runner.calibrate_detector(exp, det, episodes=40, seed=100, max_episodes=200)
+    assert calls[0] == (100, 40) and all(s == calls[i][0] + calls[i][1] for i, (s, _) in enumerate(calls[1:]))
+    assert tau > 0 and det.calibration()["threshold_episodes"] >= 19 and len(calls) >= 2
+    calls.clear()
+    with pytest.raises(ValueError, match="after 50 ID calibration episodes, the most eval.max_calibration_episodes"):
+        eval_runner.calibrate_detector(exp, DiscrepancyDetector(DiscrepancyConfig(alpha=0.05, per_chunk=True)), episodes=40,
+                                       seed=100, max_episodes=50)
+    assert calls == [(100, 40), (140, 10)]
 
 
 def test_conformal_threshold_rule():
@@ -210,7 +281,7 @@ def test_the_default_detector_flags_a_displacement_at_its_first_observable_chunk
     calibration = []
     for _ in range(40):
         pred = torch.stack([torch.full_like(id_windows[0], float("nan"))] + [forecast_of(c) for c in range(1, chunks)])
-        calibration.append({"latent_real": id_windows.numpy(), "latent_pred": pred.numpy()})
+        calibration.append({"latent_real": id_windows.numpy(), "latent_pred": pred.numpy(), "success": True})
 
     def rollout(displaced: bool):
         ctrl = exp.make_controller()
@@ -280,8 +351,10 @@ def test_ddp_detect_cli_writes_the_comparison(tiny_recipe, tmp_path):
     exp = build(tiny_recipe)
     exp.train(progress=False)
     out = tmp_path / "detect"
+    # an untrained policy never succeeds: tau from every held-out episode, failing ones too
     code = main(["detect", "--checkpoint", str(tmp_path / "run" / "last.pt"), "--episodes", "2",
                  "--calibration-episodes", "4", "--alpha", "0.5", "--scores", "paper,per_chunk_cusum",
+                 "--threshold-on", "all",
                  "--env", "displacement_chunk=2", "--output-dir", str(out), "--quiet"])
     assert code == 0
     rep = json.loads((out / "detect.json").read_text())
@@ -294,7 +367,7 @@ def test_ddp_detect_cli_writes_the_comparison(tiny_recipe, tmp_path):
     assert main(["detect", "--checkpoint", str(tmp_path / "run" / "last.pt"), "--scores", "papr"]) == 2
     # the saved rollouts score other statistics without rolling out: the same numbers for the same statistic
     again, ckpt, saved = tmp_path / "again", str(tmp_path / "run" / "last.pt"), str(out / "detect_rollouts.npz")
-    assert main(["detect", "--checkpoint", ckpt, "--rollouts", saved, "--alpha", "0.5",
+    assert main(["detect", "--checkpoint", ckpt, "--rollouts", saved, "--alpha", "0.5", "--threshold-on", "all",
                  "--scores", "paper,point_newest", "--disturbances", "ood_base",
                  "--output-dir", str(again), "--quiet"]) == 0
     rep2 = json.loads((again / "detect.json").read_text())
@@ -326,7 +399,7 @@ def test_forecast_samples_give_a_mean_forecast_and_its_spread(tiny_recipe):
     # a spread-scaled detector calibrates on such rollouts and reads the spread online
     det = DiscrepancyDetector(DiscrepancyConfig(alpha=0.5, spread=True))
     latents = {k: r["ddp", k].double().numpy() for k in ("latent_real", "latent_pred", "latent_pred_std")}
-    eps = [latents] * 2
+    eps = [{**latents, "success": True}] * 2
     det.calibrate(eps)
     assert len(det.calibration()["scale"]) == std.shape[-1] and det.tau > 0
     out = det(r.select(("ddp", "latent_real"), ("ddp", "latent_pred"), ("ddp", "latent_pred_std"), "chunk_index"))

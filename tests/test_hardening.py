@@ -280,7 +280,7 @@ def test_calibration_ignores_nonfinite_discrepancies(tiny_recipe, monkeypatch):
 
     def episode(values):  # chunk scores -> latent windows whose D_R-I is exactly those values
         pred = np.sqrt(np.asarray(values, dtype=np.float64))[:, None, None] * np.ones((1, 2, 4))
-        return {"latent_real": np.zeros_like(pred), "latent_pred": pred}
+        return {"latent_real": np.zeros_like(pred), "latent_pred": pred, "success": True}
 
     canned = [episode([float("nan"), 0.1, float("inf"), 0.3]), episode([float("nan"), 0.2])]
     monkeypatch.setattr(runner, "rollout_episodes", lambda *a, **k: canned)

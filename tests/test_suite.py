@@ -187,6 +187,36 @@ def test_aggregation_math(tmp_path):
     assert (tmp_path / "table.csv").read_text().splitlines()[0].startswith("method,protocol,a_mean,a_std")
 
 
+def test_stored_results_keep_the_detector_traces_and_the_report_draws_them(tmp_path):
+    """A run's stored result keeps, per protocol with a detector statistic, each episode's statistic per
+    chunk, mode and first visible chunk (one line per trace in the JSON); the report draws them."""
+    from ddp import results_json
+    from ddp.suite.runner import _summary
+
+    nan = float("nan")
+    episode = {"seed": 1000, "success": True, "score": [nan, 0.51234, 7.0, 30.0], "mode": [0.0, 0.0, 1.0, 1.0],
+               "disturbed": [False, False, True, True], "discrepancy": [nan, 1e-3, 2e-2, 3e-2]}
+    protocol = {"success_rate": 1.0, "successes": 1, "episodes": 1, "tau": 3.0, "alpha": 0.05,
+                "per_episode": [episode], "detection": {"detected": 1, "per_episode": [{"seed": 1000}]}}
+    summary = _summary(protocol)
+    assert summary["traces"] == [{"success": True, "first_visible": 2, "score": [None, 0.512, 7.0, 30.0],
+                                  "mode": "0011"}]
+    assert "per_episode" not in summary["detection"]
+    oracle = {**protocol, "per_episode": [{**episode, "score": [nan] * 4}]}  # the oracle schedule: no statistic
+    assert "traces" not in _summary(oracle)
+    text = results_json.dumps({"protocols": {"ood_ddp": summary}})
+    assert '"score": [null, 0.512, 7.0, 30.0]' in text and json.loads(text)["protocols"]["ood_ddp"] == \
+        json.loads(json.dumps(results_json.strict(summary)))
+    results = [_result("a", "ddp", 0, {"id": 1.0}), _result("a", "dp3", 0, {"id": 0.9})]
+    write_suite_report(results, tmp_path / "plain", "t")
+    assert (tmp_path / "plain" / "table.png").stat().st_size > 0 and not (tmp_path / "plain" / "detection.png").exists()
+    clean = {**episode, "disturbed": [False] * 4, "mode": [0.0] * 4, "score": [nan, 0.4, 0.6, 0.5]}
+    results[0]["protocols"]["ood_ddp"] = summary
+    results[0]["protocols"]["id_ddp"] = _summary({**protocol, "per_episode": [clean]})
+    paths = write_suite_report(results, tmp_path / "traced", "t")
+    assert tmp_path / "traced" / "detection.png" in paths and (tmp_path / "traced" / "detection.png").stat().st_size > 0
+
+
 def test_reference_rows_sit_under_their_rows_and_average_the_same_tasks(tmp_path):
     from ddp.suite.spec import load_reference
 

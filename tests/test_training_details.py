@@ -236,7 +236,8 @@ def test_tau_is_calibrated_on_id_rollouts_of_the_base_policy(tiny_recipe, tmp_pa
 
     tiny_recipe["env"]["max_episode_steps"] = 16
     tiny_recipe["eval"] = {"env": {"cube_x": [-0.05, 0.05]}, "calibration_episodes": 3, "seed": 500}
-    tiny_recipe["controller"] = {"detector": {"name": "discrepancy", "tau": None, "alpha": 0.5},
+    tiny_recipe["controller"] = {"detector": {"name": "discrepancy", "tau": None, "alpha": 0.5,
+                                              "threshold_on": "all"},
                                  "tracker": {"name": "oracle"}}
     exp = build(tiny_recipe)
     nan = float("nan")
@@ -267,7 +268,7 @@ def test_tau_is_calibrated_on_id_rollouts_of_the_base_policy(tiny_recipe, tmp_pa
     # split conformal, alpha 0.5, 3 held-out episode maxima (0.5, 2.0, 0.9): the ceil(4 x 0.5) = 2nd smallest
     expected_tau = 0.9
 
-    det = DiscrepancyDetector(DiscrepancyConfig(tau=None, alpha=0.5))
+    det = DiscrepancyDetector(DiscrepancyConfig(tau=None, alpha=0.5, threshold_on="all"))  # failing ones too
     tau = runner.calibrate_detector(exp, det, episodes=3, seed=77, progress=False)
     assert tau == pytest.approx(expected_tau, rel=1e-12) and det.tau == tau
     id_env = runner.env_overrides(exp, get_protocol("id"), exp.recipe.eval.max_steps)

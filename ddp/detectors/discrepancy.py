@@ -9,6 +9,10 @@ number of calibration episodes that allows it. ``dims`` / ``frames`` /
 ``whiten`` / ``spread`` / ``per_chunk`` / ``cusum`` choose another statistic of the same
 residual (see ``ddp.detectors.scores``; ``ddp detect`` compares them on a
 checkpoint). ``tau`` fixes the threshold instead (in the statistic's units).
+``threshold_on: successful`` (the default) sets tau on the held-out ID episodes
+that succeeded only: false alarms are then bounded by ``alpha`` over nominal
+episodes, and a failing ID episode, whose residual can wander far (it leaves
+the demonstrations), does not set the threshold for every other one.
 
 Reads the controller's ``("ddp", "latent_real")`` / ``("ddp", "latent_pred")``
 windows ([B, M, D]; the forecast is NaN before the first one exists, so no
@@ -19,8 +23,11 @@ alarm is possible on an episode's first chunk) and ``chunk_index``; writes
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
+
+from ddp.config import check_choices
 
 from ddp.detectors.scores import ScoreCalibration, ScoreSpec, fit_calibration, residual_score
 from ddp.keys import KeyedModule
@@ -41,8 +48,13 @@ class DiscrepancyConfig:
     drift: float = 1.0  # cusum: subtracted each chunk, in units of the per-chunk scale (the ID median by default)
     spread: bool = False  # residuals scaled by the forecast samples' spread (controller.forecast_samples > 1)
     fit_fraction: float = 0.5  # calibration: share of ID episodes fitting the score; the rest set tau
+    # the held-out ID episodes that set tau: the successful ones (alpha then bounds false alarms over
+    # nominal episodes; a failing ID episode's wandering residual no longer sets tau; more episodes are
+    # rolled out while fewer than (1 - alpha) / alpha succeeded), or all of them
+    threshold_on: Literal["successful", "all"] = "successful"
 
     def __post_init__(self):
+        check_choices(self)
         if self.tau is not None and not self.tau > 0:
             raise ValueError(f"tau must be > 0 or null; got {self.tau}")
         if not 0.0 < self.alpha < 1.0:
@@ -91,7 +103,7 @@ class DiscrepancyDetector(KeyedModule):
         """Fit the statistic and tau on ID episodes (``latent_real`` / ``latent_pred`` per chunk); return tau."""
         cfg = self.config
         self.cal = fit_calibration(list(episodes), self.spec, alpha=cfg.alpha, point_dims=point_dims,
-                                   fit_fraction=cfg.fit_fraction, tau=cfg.tau)
+                                   fit_fraction=cfg.fit_fraction, tau=cfg.tau, threshold_on=cfg.threshold_on)
         return self.cal.tau
 
     def calibration(self) -> dict:

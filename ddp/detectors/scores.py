@@ -26,10 +26,12 @@ same two latent windows (``real``, ``pred``: ``[..., M, D]``):
   alarm; a persistent moderate excess then fires as surely as one large one.
 
 :class:`ScoreCalibration` fits the reference statistics on one part of the ID
-calibration episodes and sets the threshold on the other part by the
-split-conformal rule: with ``n`` held-out episode maxima, the threshold is the
-``ceil((n + 1)(1 - alpha))``-th smallest, so that a new ID episode (drawn
-like them) exceeds it with probability at most ``alpha``, for any score.
+calibration episodes (:func:`split_fit`) and sets the threshold on the other
+part by the split-conformal rule: with ``n`` held-out episode maxima, the
+threshold is the ``ceil((n + 1)(1 - alpha))``-th smallest, so that a new ID
+episode (drawn like them) exceeds it with probability at most ``alpha``, for
+any score. With ``threshold_on="successful"`` only the held-out episodes that
+succeeded count, and the guarantee is over nominal ID episodes.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ import torch
 
 __all__ = [
     "ScoreSpec", "ScoreCalibration", "residual_score", "conformal_threshold", "episode_scores", "episode_statistic",
-    "fit_calibration",
+    "fit_calibration", "split_fit", "THRESHOLD_ON",
 ]
 
 DIMS = ("all", "point", "state")
@@ -188,6 +190,7 @@ class ScoreCalibration:
     chunk_fallback: float | None = None
     fit_episodes: int = 0
     threshold_episodes: int = 0
+    threshold_on: str = "all"  # the held-out episodes that set tau: all, or the successful ones
     reference: list[list[float]] | None = None
 
     def scale_at(self, chunk: int) -> float:
@@ -239,20 +242,66 @@ def _scores(episodes, spec: ScoreSpec, point_dims: int, cal: ScoreCalibration) -
     return out
 
 
+THRESHOLD_ON = ("all", "successful")
+
+
+def split_fit(n: int, fit_fraction: float) -> list[bool]:
+    """Which of ``n`` calibration episodes fit the score (True) and which set the threshold: episode
+    ``i`` fits iff ``floor((i + 1) f) > floor(i f)``, so a fraction ``f`` of any prefix fits and
+    episodes added later never move an earlier one to the other side (0.5: every second one)."""
+    return [math.floor((i + 1) * fit_fraction) > math.floor(i * fit_fraction) for i in range(n)]
+
+
+def _needed(alpha: float) -> int:
+    return math.ceil((1.0 - alpha) / alpha)
+
+
 def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | None, point_dims: int = 0,
-                    fit_fraction: float = 0.5, tau: float | None = None) -> ScoreCalibration:
-    """Fit ``spec``'s reference statistics on the first ``fit_fraction`` of the ID ``episodes`` (each with
-    ``latent_real`` / ``latent_pred`` arrays ``[chunks, M, D]``, NaN forecasts where none) and, unless
-    ``tau`` is given, the conformal threshold for ``alpha`` on the rest."""
+                    fit_fraction: float = 0.5, tau: float | None = None,
+                    threshold_on: str = "all") -> ScoreCalibration:
+    """Fit ``spec``'s reference statistics on a ``fit_fraction`` of the ID ``episodes`` (each with
+    ``latent_real`` / ``latent_pred`` arrays ``[chunks, M, D]``, NaN forecasts where none; see
+    :func:`split_fit`) and, unless ``tau`` is given, the conformal threshold for ``alpha`` on the rest,
+    or (``threshold_on="successful"``) on the rest that succeeded: the threshold then bounds false
+    alarms over nominal ID episodes, and failing ones (heavy-tailed residuals) do not set it. Too few
+    successful held-out episodes raise :class:`ddp.contracts.NeedMoreEpisodes`."""
+    from ddp.contracts import NeedMoreEpisodes
+
+    if threshold_on not in THRESHOLD_ON:
+        raise ValueError(f"threshold_on must be one of {', '.join(THRESHOLD_ON)}; got {threshold_on!r}")
     n = len(episodes)
     if n < 2 and spec.needs_reference and tau is None:
         raise ValueError(f"calibrating this score needs at least 2 ID episodes; got {n}")
-    n_fit = max(1, int(round(n * fit_fraction))) if spec.needs_reference and tau is None else 0
-    if tau is None and n - n_fit < 1:
+    if spec.needs_reference and tau is None:
+        fits = split_fit(n, fit_fraction)
+        if not any(fits):
+            fits[-1] = True
+        fit = [e for e, f in zip(episodes, fits) if f]
+        held = [e for e, f in zip(episodes, fits) if not f]
+    else:
+        fit, held = list(episodes), list(episodes)
+    n_fit = len(fit) if spec.needs_reference and tau is None else 0
+    if tau is None and not held:
         raise ValueError(f"no ID episodes left for the threshold ({n} episodes, {n_fit} used to fit the score)")
-    fit = episodes[:n_fit] if n_fit else episodes
-    held = episodes[n_fit:] if tau is None else episodes
-    cal = ScoreCalibration(alpha=alpha, fit_episodes=n_fit, threshold_episodes=len(held) if tau is None else 0)
+    if tau is None and threshold_on == "successful":
+        if any("success" not in e for e in held):
+            raise ValueError("threshold_on: successful needs calibration episodes that record their success")
+        ok = [e for e in held if e["success"]]
+        need = _needed(alpha)
+        if not ok and len(held) >= need:
+            raise ValueError(f"none of the {len(held)} held-out ID calibration episodes succeeded, so none can set tau "
+                             "(threshold_on: successful): the policy does not solve the task in distribution; "
+                             "set controller.detector.threshold_on: all to calibrate on failing episodes")
+        if len(ok) < need:
+            rate = max(len(ok), 1) / (len(held) + 1)  # the held-out success rate, never taken as 0
+            share = 1.0 - fit_fraction if spec.needs_reference else 1.0
+            raise NeedMoreEpisodes(
+                f"alpha {alpha:g} needs {need} successful held-out ID calibration episodes for its threshold "
+                f"(threshold_on: successful); {len(ok)} of {len(held)} succeeded",
+                more=math.ceil((need - len(ok)) / (share * rate)))
+        held = ok
+    cal = ScoreCalibration(alpha=alpha, fit_episodes=n_fit, threshold_episodes=len(held) if tau is None else 0,
+                           threshold_on=threshold_on)
     if spec.whiten:
         res = np.concatenate([
             (np.asarray(e["latent_real"], np.float64) - np.asarray(e["latent_pred"], np.float64)).reshape(-1, np.shape(

@@ -6,7 +6,8 @@ and one average per benchmark. A cell is the mean success rate over seeds +/- it
 (sample std, ddof 1) with the seeds and episodes behind it; with a single seed it is the rate with
 its 95 % Wilson interval instead. A benchmark average is the mean over its tasks, and its std is
 that of the per-seed averages over tasks (seeds every task of the benchmark has).
-:func:`write_suite_report` writes ``table.md``, ``table.json``, ``table.csv`` and ``table.png``.
+:func:`write_suite_report` writes ``table.md``, ``table.json``, ``table.csv`` and the figures of
+:mod:`ddp.suite.figures` (``table.png``; ``detection.png`` when runs stored detector traces).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ddp import results_json
+from ddp.suite.figures import plot_detection, plot_table
 
 __all__ = ["aggregate", "wilson", "write_suite_report", "format_cell"]
 
@@ -152,40 +154,6 @@ def markdown(table: dict, title: str, reference: dict | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(table: dict, path: Path, title: str) -> None:
-    """Per-task bars (one group per task, one bar per method x protocol) with error bars."""
-    from ddp.plots import _pyplot
-
-    plt = _pyplot()
-    tasks, rows = table["tasks"], table["rows"]
-    width = 0.8 / max(1, len(rows))
-    fig, ax = plt.subplots(figsize=(4 + 1.2 * len(tasks) * max(1, len(rows)) / 3, 3.6))
-    for i, (m, p) in enumerate(rows):
-        means, errs = [], [[], []]
-        for t in tasks:
-            c = table["cells"].get(f"{m}|{p}|{t}")
-            mean = 100 * c["mean"] if c else float("nan")
-            means.append(mean)
-            if c and "std" in c:
-                errs[0].append(100 * c["std"]), errs[1].append(100 * c["std"])
-            elif c and "wilson95" in c:
-                # clipped at 0: at a rate of 0 or 1 the interval's end can round to a hair inside the mean
-                errs[0].append(max(0.0, mean - 100 * c["wilson95"][0]))
-                errs[1].append(max(0.0, 100 * c["wilson95"][1] - mean))
-            else:
-                errs[0].append(0.0), errs[1].append(0.0)
-        xs = np.arange(len(tasks)) + (i - (len(rows) - 1) / 2) * width
-        ax.bar(xs, means, width, yerr=errs, capsize=2, label=f"{m} / {p}")
-    ax.set_xticks(np.arange(len(tasks)), tasks, rotation=30, ha="right")
-    ax.set_ylim(0, 105)
-    ax.set_ylabel("success rate (%)")
-    ax.set_title(title)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the bars, not over them
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
 def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
                        reference: dict | None = None) -> list[Path]:
     """table.md, table.json, table.csv and table.png under ``out_dir``; returns their paths. A ``reference``
@@ -208,8 +176,11 @@ def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
             w.writerow(row)
     paths = [out / "table.md", out / "table.json", out / "table.csv"]
     try:
-        plot(table, out / "table.png", title)
-        paths.append(out / "table.png")
-    except ImportError:
+        paths.append(plot_table(table, out / "table.png", title, reference_cells(table, reference),
+                                reference["label"] if reference else "paper"))
+        traces = plot_detection(results, out / "detection.png", f"{title}: the detector's statistic per episode")
+        if traces is not None:
+            paths.append(traces)
+    except ImportError:  # no matplotlib: the tables alone
         pass
     return paths

@@ -21,6 +21,7 @@ with one thread per run).
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import time
 from pathlib import Path
@@ -28,7 +29,31 @@ from pathlib import Path
 from ddp.suite.spec import RunSpec, SuiteSpec
 from ddp.suite.store import ResultStore
 
-__all__ = ["execute_run", "run_suite"]
+__all__ = ["execute_run", "run_suite", "traces"]
+
+
+def _round(value, digits: int = 3):
+    """``value`` to ``digits`` significant digits; None for a missing or non-finite one."""
+    if value is None or not math.isfinite(value):
+        return None
+    return float(f"{value:.{digits}g}")
+
+
+def traces(protocol: dict) -> list[dict] | None:
+    """Per episode, what a detection figure needs: the detector's statistic per chunk (3 significant
+    digits), the controller's mode per chunk as a string of 0 / 1, the first chunk at which the
+    disturbance was visible and the outcome. None when the protocol's detector records no statistic
+    (no detector, or the oracle schedule)."""
+    episodes = protocol.get("per_episode") or []
+    if not any(_round(v) is not None for e in episodes for v in e.get("score") or []):
+        return None
+    out = []
+    for e in episodes:
+        visible = next((c for c, f in enumerate(e.get("disturbed") or []) if f), None)
+        out.append({"success": bool(e.get("success")), "first_visible": visible,
+                    "score": [_round(v) for v in e.get("score") or []],
+                    "mode": "".join("1" if m >= 0.5 else "0" for m in e.get("mode") or [])})
+    return out
 
 
 def _summary(protocol: dict) -> dict:
@@ -36,6 +61,9 @@ def _summary(protocol: dict) -> dict:
            if k in protocol}
     if "detection" in protocol:
         out["detection"] = {k: v for k, v in protocol["detection"].items() if k != "per_episode"}
+    per_episode = traces(protocol)
+    if per_episode is not None:
+        out["traces"] = per_episode
     return out
 
 

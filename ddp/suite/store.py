@@ -1,7 +1,7 @@
 """The results store of a suite: one JSON per finished run, written atomically; what makes a suite resumable.
 
 ``results/suites/<suite>/<task>__<method>__seed<seed>.json`` holds a run's result once it has
-finished (success and detection per protocol, training and evaluation wall times). A suite restarted
+finished (success and detection per protocol, the detector's per-chunk traces, training and evaluation wall times). A suite restarted
 after an interruption skips every run whose file is there, parses, is complete and was made for the
 same recipe (its ``recipe_hash``); anything else (missing, half-written, corrupt, or from a recipe
 that has since changed) is run again.
