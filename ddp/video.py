@@ -14,7 +14,9 @@ what the DDP controller decided for the chunk being executed:
 
 Videos are MP4 when imageio with its ffmpeg plugin is installed
 (``pip install "ddp[video]"``) and animated GIF otherwise (Pillow, which
-matplotlib already needs).
+matplotlib already needs). Beside each video, ``<name>_sheet.png`` shows the
+episode at a glance: the last frame of every chunk, labelled the same way,
+eight to a row (small enough to commit with a run's results).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ChunkLabel", "EpisodeRecorder", "VideoSettings", "annotate", "write_video"]
+__all__ = ["ChunkLabel", "EpisodeRecorder", "VideoSettings", "annotate", "contact_sheet", "write_video"]
 
 ID_COLOUR = (40, 170, 70)
 OOD_REAL_COLOUR = (235, 140, 20)
@@ -137,6 +139,28 @@ def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 20) -> Pa
     return mp4
 
 
+def contact_sheet(frames: list[np.ndarray], path: str | Path, columns: int = 8, width: int = 160) -> Path:
+    """Write ``frames`` (one per chunk, already labelled) as one PNG grid, each scaled to ``width`` px."""
+    from PIL import Image
+
+    if not frames:
+        raise ValueError(f"{path}: no frames for a contact sheet")
+    tiles = []
+    for f in frames:
+        img = Image.fromarray(np.ascontiguousarray(f[..., :3], dtype=np.uint8))
+        tiles.append(img.resize((width, max(1, round(img.height * width / img.width))), Image.LANCZOS))
+    cols = min(columns, len(tiles))
+    rows = math.ceil(len(tiles) / cols)
+    h = max(t.height for t in tiles)
+    sheet = Image.new("RGB", (cols * width, rows * h), (255, 255, 255))
+    for i, t in enumerate(tiles):
+        sheet.paste(t, ((i % cols) * width, (i // cols) * h))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(path, optimize=True)
+    return path
+
+
 class EpisodeRecorder:
     """Collects labelled frames episode by episode and writes the first ``settings.episodes`` of them."""
 
@@ -145,6 +169,7 @@ class EpisodeRecorder:
             raise ValueError(f"video episodes must be >= 0; got {settings.episodes}")
         self.settings = settings
         self.frames: list[np.ndarray] = []
+        self.chunk_ends: dict[int, int] = {}  # chunk -> index of its last frame (the contact sheet's frames)
         self.episode = -1  # episodes started so far - 1
         self.written: list[Path] = []
 
@@ -164,14 +189,18 @@ class EpisodeRecorder:
         else:
             flash = SHIFT_COLOUR if label.shifted else None
             self.frames.append(annotate(frame, label.caption(), label.colour(), flash=flash))
+            self.chunk_ends[label.chunk] = len(self.frames) - 1
 
     def finish(self) -> Path | None:
         """Write the current episode (if recorded) and forget its frames."""
         if not self.recording or not self.frames:
-            self.frames = []
+            self.frames, self.chunk_ends = [], {}
             return None
         s = self.settings
-        path = write_video(self.frames, Path(s.directory) / f"{s.prefix}{s.first_seed + self.episode}", s.fps)
-        self.frames = []
+        name = Path(s.directory) / f"{s.prefix}{s.first_seed + self.episode}"
+        path = write_video(self.frames, name, s.fps)
+        ends = [self.chunk_ends[c] for c in sorted(self.chunk_ends)] or [len(self.frames) - 1]
+        contact_sheet([self.frames[i] for i in ends], name.with_name(f"{name.name}_sheet.png"))
+        self.frames, self.chunk_ends = [], {}
         self.written.append(path)
         return path

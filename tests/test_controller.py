@@ -176,6 +176,12 @@ def test_video_frames_are_labelled_with_the_controller_mode(tmp_path):
     assert env.recorder.frames == [] and len(env.recorder.written) == 1
     video = env.recorder.written[0]
     assert video.name.startswith("seed0.") and video.stat().st_size > 0
+    # the contact sheet: the last frame of each of the two chunks, side by side, labelled as in the video
+    from PIL import Image
+
+    sheet = np.asarray(Image.open(tmp_path / "seed0_sheet.png"))
+    assert sheet.shape == (160, 320, 3)
+    assert tuple(sheet[1, 1]) == ID_COLOUR and tuple(sheet[1, 161]) == IMAGINED_COLOUR
     env.reset()  # the second episode is not recorded (episodes=1)
     assert not env.recorder.recording and env.recorder.frames == []
     # the imagined chunk is red with a blue (tracking shift) ring, whatever the file format
