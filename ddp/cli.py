@@ -197,7 +197,7 @@ def cmd_detect(args) -> int:
 
 
 def cmd_suite(args) -> int:
-    from ddp.suite import load_suite, run_suite, select, write_suite_report
+    from ddp.suite import SuiteRunsFailed, load_suite, run_suite, select, write_suite_report
     from ddp.suite.store import ResultStore
 
     _at_least_one(workers=args.workers, threads=args.threads)
@@ -214,20 +214,27 @@ def cmd_suite(args) -> int:
             print(f"{run.run_id}: {run.recipe['name']}, protocols {protocols}, -> {run.recipe['train']['output_dir']}")
         print(f"{len(chosen.runs)} runs; results in {suite.results_dir}")
         return 0
-    if args.report:
-        done = ResultStore(suite.results_dir).all(suite.runs)
-    else:
+    failed = None
+    if not args.report:
         ray = (args.ray or True) if args.ray is not None else False
-        run_suite(chosen, workers=args.workers, threads=args.threads, progress=not args.quiet, ray=ray,
-                  gpus_per_run=args.gpus_per_run)
-        done = ResultStore(suite.results_dir).all(suite.runs)  # the table covers every stored run
+        try:
+            run_suite(chosen, workers=args.workers, threads=args.threads, progress=not args.quiet, ray=ray,
+                      gpus_per_run=args.gpus_per_run)
+        except SuiteRunsFailed as err:  # the table still shows what finished
+            failed = err
+    done = ResultStore(suite.results_dir).all(suite.runs)  # the table covers every stored run
     results = [done[r.run_id] for r in suite.runs if r.run_id in done]
     if not results:
+        if failed is not None:
+            raise failed
         raise DDPError(f"no finished runs of suite {suite.name!r} in {suite.results_dir} yet")
     paths = write_suite_report(results, suite.results_dir, f"suite {suite.name} ({len(results)}/{len(suite.runs)} runs)",
                                reference=suite.reference)
     print(paths[0].read_text(), end="")
     print(f"wrote {', '.join(str(p) for p in paths)}")
+    if failed is not None:
+        print(f"ddp: error: {failed}", file=sys.stderr)
+        return 1
     return 0
 
 

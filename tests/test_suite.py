@@ -155,6 +155,75 @@ def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
             {p: v["success_rate"] for p, v in b["protocols"].items()}
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_failing_run_is_reported_and_the_others_finish(suite_file, workers):
+    """One run's checkpoint is corrupt: its traceback goes to its log.txt, the suite prints one line,
+    finishes the other run and raises SuiteRunsFailed naming the failed one."""
+    from ddp.suite import SuiteRunsFailed
+
+    suite = select(load_suite(suite_file), tasks=["near"], methods=["dp3"])
+    bad = suite.runs[1]
+    run_dir = suite_file.parent / bad.recipe["train"]["output_dir"]
+    run_dir.mkdir(parents=True)
+    (run_dir / "last.pt").write_bytes(b"not a checkpoint")
+    lines = []
+    with pytest.raises(SuiteRunsFailed, match=f"1 run.s. failed: {bad.run_id}") as failed:
+        run_suite(suite, workers=workers, threads=1, progress=False, echo=lines.append)
+    assert list(failed.value.done) == [suite.runs[0].run_id] and list(failed.value.failed) == [bad.run_id]
+    assert any(line.startswith(f"failed {bad.run_id}:") for line in lines)
+    log = (run_dir / "log.txt").read_text()
+    assert "Traceback" in log and log.rstrip().endswith(f"== {bad.run_id} failed")
+    assert ResultStore(suite.results_dir).load(suite.runs[0]) is not None
+
+
+def test_a_stopped_pool_saves_its_runs_and_starts_no_queued_one(suite_file):
+    """SIGTERM to `ddp suite --workers 2` alone (as `kill PID` sends): the two runs in training save their
+    checkpoints, the queued third never starts, and no worker outlives the suite."""
+    import contextlib
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    spec = yaml.safe_load(suite_file.read_text())
+    spec["set"] = ["train.lr=0.002", "train.max_steps=100000", "train.epochs=100000"]
+    spec["methods"] = {"dp3": spec["methods"]["dp3"]}
+    spec["seeds"] = [0, 1]  # near and far: four runs for two workers
+    suite_file.write_text(yaml.safe_dump(spec, sort_keys=False))
+    runs = [suite_file.parent / "runs/suites/tiny_suite" / f"{t}__dp3__seed{k}" for k in (0, 1) for t in ("near", "far")]
+    proc = subprocess.Popen([sys.executable, "-m", "ddp", "suite", str(suite_file), "--workers", "2", "--threads", "1",
+                             "--quiet"], cwd=suite_file.parent, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)})
+    children: list[str] = []
+    try:
+        deadline = time.time() + 120
+        while not all((r / "logs").exists() for r in runs[:2]) and time.time() < deadline:
+            time.sleep(0.5)  # the first two runs are training (their loggers exist)
+        assert time.time() < deadline, proc.stdout.read().decode()[-2000:] if proc.poll() is not None else "no start"
+        time.sleep(3)
+        children = subprocess.run(["pgrep", "-P", str(proc.pid), "-f", "spawn_main"], capture_output=True,
+                                  text=True).stdout.split()
+        assert len(children) == 2  # the two workers
+        proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=120)[0].decode()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            for c in children:  # whatever failed, leave no worker behind
+                with contextlib.suppress(OSError):
+                    os.kill(int(c), signal.SIGKILL)
+    assert proc.returncode == 128 + signal.SIGTERM, out[-2000:]
+    assert all((r / "last.pt").exists() for r in runs[:2]), out[-2000:]
+    assert not any((r / "log.txt").exists() for r in runs[2:]), out[-2000:]  # queued: never started
+    for _ in range(20):  # workers exit before the suite does; allow for the kernel's bookkeeping
+        alive = [c for c in children if os.path.exists(f"/proc/{c}")]
+        if not alive:
+            break
+        time.sleep(0.5)
+    assert not alive, f"workers outlived the suite: {alive}"
+
+
 def _result(task, method, seed, rates, bench="mw", episodes=10):
     return {"task": task, "method": method, "seed": seed, "benchmark": bench,
             "protocols": {p: {"success_rate": r, "successes": round(r * episodes), "episodes": episodes}

@@ -8,14 +8,18 @@ it arrives, printing one line per run started and finished:
 
 * ``sequential`` (default): one run after another in this process;
 * ``pool``: ``workers`` processes (``concurrent.futures`` with the spawn start method), each pinned
-  to ``cpu_count // workers`` torch threads;
+  to ``cpu_count // workers`` torch threads. Interrupted (Ctrl-C, or SIGTERM / SIGHUP as a scheduler
+  sends before preempting), it starts no queued run, passes SIGTERM on to the runs in progress (a
+  training run saves its checkpoint) and waits for them: no worker outlives the suite;
 * ``ray``: each run a Ray task asking for its threads as CPUs (and ``gpus_per_run`` GPUs), on a
   local Ray started here (``ray=True``) or a cluster (``ray="ADDRESS"``); Ray schedules them on
   the resources it has. Workers change to this working directory first: on a cluster every node
   needs the repository (and its data) at the same path.
 
-A run is a pure function of its recipe and seed, so both executors give the same results (tested
-with one thread per run).
+A run that raises leaves its traceback in its ``log.txt``; the suite prints one line, goes on with the
+other runs and then raises :class:`SuiteRunsFailed` (``ddp suite`` still writes the table of what
+finished, and exits 1). A run is a pure function of its recipe and seed, so the executors give the
+same results (tested with one thread per run).
 """
 
 from __future__ import annotations
@@ -23,13 +27,16 @@ from __future__ import annotations
 import contextlib
 import math
 import os
+import signal
 import time
+import traceback
 from pathlib import Path
 
+from ddp.errors import DDPError
 from ddp.suite.spec import RunSpec, SuiteSpec
 from ddp.suite.store import ResultStore
 
-__all__ = ["execute_run", "run_suite", "traces"]
+__all__ = ["SuiteRunsFailed", "execute_run", "run_suite", "traces"]
 
 
 def _round(value, digits: int = 3):
@@ -105,11 +112,19 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
     t0 = time.perf_counter()
     with open(run_dir / "log.txt", "a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         print(f"== {run.run_id} started (threads {torch.get_num_threads()})", flush=True)
-        exp = build(run.recipe)
-        trained = exp.train(resume=True, progress=False)
-        exp.load_checkpoint(trained.checkpoint)
-        report = exp.evaluate(list(run.protocols) if run.protocols else None, episodes=run.episodes,
-                              progress=False)
+        try:
+            exp = build(run.recipe)
+            trained = exp.train(resume=True, progress=False)
+            exp.load_checkpoint(trained.checkpoint)
+            report = exp.evaluate(list(run.protocols) if run.protocols else None, episodes=run.episodes,
+                                  progress=False)
+        except BaseException as err:  # the traceback stays with the run (the suite prints one line)
+            if isinstance(err, KeyboardInterrupt):
+                print(f"== {run.run_id} stopped ({err or 'interrupted'}; a training run saved its checkpoint)", flush=True)
+            else:
+                traceback.print_exc()
+                print(f"== {run.run_id} failed", flush=True)
+            raise
         print(f"== {run.run_id} finished", flush=True)
     return {
         "run_id": run.run_id, "suite": run.suite, "task": run.task, "method": run.method, "seed": run.seed,
@@ -120,6 +135,34 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
         "wall_seconds": time.perf_counter() - t0,
         "code": code_version(),
     }
+
+
+_STOP = None  # in a pool worker: the suite's stop event (set when the suite is interrupted)
+STOP_GRACE_SECONDS = 300  # an interrupted pool waits this long for its runs to save their checkpoints
+
+
+def _init_worker(stop) -> None:
+    """A pool worker: Ctrl-C is the suite's to handle (it passes SIGTERM on to a running run)."""
+    global _STOP
+    _STOP = stop
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _pool_run(run: RunSpec, threads: int | None) -> dict | None:
+    """A pool worker's run; None without running once the suite is stopping (a queued run does not start)."""
+    if _STOP is not None and _STOP.is_set():
+        return None
+    return execute_run(run, threads)
+
+
+class SuiteRunsFailed(DDPError):
+    """Some runs of a suite raised; the others finished and are stored (``done``)."""
+
+    def __init__(self, failed: dict[str, str], done: dict[str, dict]):
+        self.failed, self.done = failed, done
+        names = ", ".join(failed)
+        super().__init__(f"{len(failed)} run(s) failed: {names} (the traceback is in each run's log.txt; "
+                         "the suite skips the finished runs when started again)")
 
 
 def _fmt(seconds: float) -> str:
@@ -142,47 +185,99 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
         return done
     bar = tqdm(total=len(suite.runs), initial=len(done), desc=f"suite {suite.name}", unit="run", disable=not progress)
 
+    say = bar.write if progress else echo  # a bar's own write keeps the line above the bar
+    failed: dict[str, str] = {}
+
     def finished(run: RunSpec, result: dict) -> None:
         store.save(run, result)
         done[run.run_id] = result
         rates = ", ".join(f"{p} {100 * v['success_rate']:.0f} %" for p, v in result["protocols"].items())
-        say = bar.write if progress else echo  # a bar's own write keeps the line above the bar
         say(f"finished {run.run_id} in {_fmt(result['wall_seconds'])}: {rates}")
         bar.update(1)
 
+    def failure(run: RunSpec, err: Exception) -> None:
+        first = (str(err).strip().splitlines() or [""])[0]
+        failed[run.run_id] = f"{type(err).__name__}: {first}"
+        say(f"failed {run.run_id}: {failed[run.run_id]} (log: {run.recipe['train']['output_dir']}/log.txt)")
+
     try:
         if ray:
-            _run_on_ray(todo, finished, ray=ray, threads=threads or 1, gpus=gpus_per_run, echo=echo)
+            _run_on_ray(todo, finished, failure, ray=ray, threads=threads or 1, gpus=gpus_per_run, echo=echo)
         elif workers == 1:
             for run in todo:
                 echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
-                finished(run, execute_run(run, threads))
+                try:
+                    result = execute_run(run, threads)
+                except Exception as err:  # the next run still runs; KeyboardInterrupt / Preempted stop the suite
+                    failure(run, err)
+                    continue
+                finished(run, result)
         else:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
-            per = threads or max(1, (os.cpu_count() or 1) // workers)
-            # several processes share the cores: OpenMP threads that spin between ops would steal them
-            # (read by each spawned worker when it loads torch; a value the user set is kept; restored after)
-            policy = os.environ.get("OMP_WAIT_POLICY")
-            os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-            try:
-                with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                    futures = {}
-                    for run in todo:
-                        echo(f"queued {run.run_id} ({per} threads; log: {run.recipe['train']['output_dir']}/log.txt)")
-                        futures[pool.submit(execute_run, run, per)] = run
-                    for fut in as_completed(futures):
-                        finished(futures[fut], fut.result())
-            finally:
-                if policy is None:
-                    os.environ.pop("OMP_WAIT_POLICY", None)
+            _run_on_pool(todo, finished, failure, workers=workers, threads=threads, echo=echo)
     finally:
         bar.close()
+    if failed:
+        raise SuiteRunsFailed(failed, done)
     return done
 
 
-def _run_on_ray(todo: list[RunSpec], finished, *, ray, threads: int, gpus: float, echo) -> None:
+def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, threads: int | None, echo) -> None:
+    """``workers`` spawned processes. Interrupted (Ctrl-C, SIGTERM, SIGHUP), the suite starts no queued run,
+    passes SIGTERM on to the runs in progress (a training run saves its checkpoint), waits for them, then stops:
+    no worker outlives it."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed, wait
+
+    from ddp.preemption import stop_signals
+
+    per = threads or max(1, (os.cpu_count() or 1) // workers)
+    # several processes share the cores: OpenMP threads that spin between ops would steal them
+    # (read by each spawned worker when it loads torch; a value the user set is kept; restored after)
+    policy = os.environ.get("OMP_WAIT_POLICY")
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    ctx = multiprocessing.get_context("spawn")
+    stop = ctx.Event()
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(stop,))
+    futures: dict = {}
+    try:
+        with stop_signals():  # SIGTERM / SIGHUP raise Preempted here, like Ctrl-C's KeyboardInterrupt
+            for run in todo:
+                echo(f"queued {run.run_id} ({per} threads; log: {run.recipe['train']['output_dir']}/log.txt)")
+                futures[pool.submit(_pool_run, run, per)] = run
+            for fut in as_completed(futures):
+                try:
+                    result = fut.result()
+                except Exception as err:
+                    failure(futures[fut], err)
+                    continue
+                if result is not None:
+                    finished(futures[fut], result)
+    except KeyboardInterrupt:
+        stop.set()  # a queued run that a worker takes now returns at once
+        workers_ = multiprocessing.active_children()  # the pool's workers
+        try:
+            for child in workers_:  # a run in training saves its checkpoint and stops
+                with contextlib.suppress(OSError):
+                    os.kill(child.pid, signal.SIGTERM)
+            for fut in futures:
+                fut.cancel()
+            wait([f for f in futures if not f.cancelled()], timeout=STOP_GRACE_SECONDS)
+        finally:  # a second Ctrl-C, or a grace period gone: no worker outlives the suite either way
+            pool.shutdown(wait=False, cancel_futures=True)
+            for child in workers_:
+                child.join(timeout=5)
+                if child.is_alive():
+                    child.kill()
+                    child.join(timeout=5)
+        raise
+    else:
+        pool.shutdown(wait=True)
+    finally:
+        if policy is None:
+            os.environ.pop("OMP_WAIT_POLICY", None)
+
+
+def _run_on_ray(todo: list[RunSpec], finished, failure, *, ray, threads: int, gpus: float, echo) -> None:
     """Submit every run as a Ray task; store results in the order they finish."""
     try:
         import ray as ray_mod
@@ -204,7 +299,13 @@ def _run_on_ray(todo: list[RunSpec], finished, *, ray, threads: int, gpus: float
         while pending:
             ready, _ = ray_mod.wait(list(pending), num_returns=1)
             for ref in ready:
-                finished(pending.pop(ref), ray_mod.get(ref))
+                run = pending.pop(ref)
+                try:
+                    result = ray_mod.get(ref)
+                except Exception as err:  # a Ray task error wraps the run's own
+                    failure(run, getattr(err, "cause", None) or err)
+                    continue
+                finished(run, result)
     finally:
         if started_here:
             ray_mod.shutdown()
