@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import numpy as np
 
-__all__ = ["auroc", "first_above", "detection_metrics", "detect", "SCORE_VARIANTS", "format_detect"]
+__all__ = ["auroc", "first_above", "first_visible", "detection_metrics", "detect", "SCORE_VARIANTS", "format_detect"]
 
 
 def auroc(negatives, positives) -> float:
@@ -56,7 +56,8 @@ def first_above(values, tau: float, start: int = 0) -> int | None:
     return None
 
 
-def _first_visible(ep: dict) -> int | None:
+def first_visible(ep: dict) -> int | None:
+    """The first chunk whose observation showed the disturbance (its ``disturbed`` flags), or None."""
     flags = ep.get("disturbed") or []
     return next((c for c, f in enumerate(flags) if f), None)
 
@@ -79,7 +80,7 @@ def _auroc_after_visible(episodes: list[dict], reference: list[list[float]] | No
     for k in range(horizon):
         pos, neg = [], []
         for ep in episodes:
-            v = _first_visible(ep)
+            v = first_visible(ep)
             trace = ep.get(key)
             if v is None or trace is None or v + k >= len(trace):
                 continue
@@ -93,10 +94,10 @@ def detection_metrics(episodes: list[dict], reference: list[list[float]] | None 
                       horizon: int = 4) -> dict:
     """Detection summary of one protocol's episodes (see the module docstring); per-episode entries too."""
     per_ep, delays = [], []
-    disturbed = [ep for ep in episodes if _first_visible(ep) is not None]
-    clean = [ep for ep in episodes if _first_visible(ep) is None]
+    disturbed = [ep for ep in episodes if first_visible(ep) is not None]
+    clean = [ep for ep in episodes if first_visible(ep) is None]
     for ep in episodes:
-        visible = _first_visible(ep)
+        visible = first_visible(ep)
         alarms = _alarms(ep.get("mode") or [])
         if visible is None:
             per_ep.append({"seed": ep["seed"], "first_visible": None, "detected": None, "delay": None,
@@ -209,6 +210,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
     from ddp.contracts import NeedMoreEpisodes
     from ddp.detectors.discrepancy import DiscrepancyConfig
     from ddp.detectors.scores import fit_calibration
+    from ddp.eval_runner import more_calibration_episodes
 
     if not exp.model.has_world_model:
         raise ValueError(f"{exp.recipe.name}: detection needs a world model (world_model.enabled is false)")
@@ -238,29 +240,30 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
         return cfg.spec, fit_calibration(cal_eps, cfg.spec, alpha=alpha, point_dims=pd, fit_fraction=cfg.fit_fraction,
                                          threshold_on=cfg.threshold_on)
 
-    if rollouts is None:  # as ddp eval does: more ID calibration episodes while a variant lacks successful ones
-        cap = max(n_cal, cfg.max_calibration_episodes)
-        while len(cal_eps) < cap:
-            more = 0
-            for options in variants.values():
-                try:
-                    calibrate(options)
-                except NeedMoreEpisodes as short:
-                    more = max(more, short.more)
-                except ValueError:
-                    pass  # reported in its row below
-            if not more:
-                break
-            cal_eps = cal_eps + _rollouts(exp, "id", episodes=min(more, cap - len(cal_eps)),
-                                          seed=max(e["seed"] for e in cal_eps) + 1, env={}, **runs)
-        n_cal = len(cal_eps)
+    def calibrate_all() -> dict:  # label -> (spec, calibration), or the ValueError it raised
+        out = {}
+        for label, options in variants.items():
+            try:
+                out[label] = calibrate(options)
+            except ValueError as err:  # e.g. point dims on an encoder without a point part, too few successful episodes
+                out[label] = err
+        return out
+
+    fits = calibrate_all()
+    cap = max(n_cal, cfg.max_calibration_episodes)
+    while rollouts is None and len(cal_eps) < cap:  # as ddp eval does: more ID episodes while a variant lacks them
+        more = max((f.more for f in fits.values() if isinstance(f, NeedMoreEpisodes)), default=0)
+        if not more:
+            break
+        cal_eps = more_calibration_episodes(exp, cal_eps, more, cap=cap, **runs)
+        fits = calibrate_all()
+    n_cal = len(cal_eps)
     rows, traces = [], {}
     for label, options in variants.items():
-        try:
-            spec, cal = calibrate(options)
-        except ValueError as err:  # e.g. point dims on an encoder without a point part, too few successful episodes
-            rows.append({"score": label, "options": options, "error": str(err)})
+        if isinstance(fits[label], ValueError):
+            rows.append({"score": label, "options": options, "error": str(fits[label])})
             continue
+        spec, cal = fits[label]
         row = {"score": label, "options": options, "description": spec.label(), "tau": cal.tau,
                "threshold_on": cal.threshold_on,
                "fit_episodes": cal.fit_episodes, "threshold_episodes": cal.threshold_episodes}
@@ -273,7 +276,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
             eps = [{**ep, "score": s} for ep, s in zip(test[name], stats[name])]
             delays, early, missed = [], 0, 0
             for ep in eps:
-                visible = _first_visible(ep)
+                visible = first_visible(ep)
                 first = first_above(ep["score"], cal.tau)
                 if visible is None:
                     continue
@@ -286,7 +289,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
                     delays.append(first - visible)
             au = _auroc_after_visible(eps, stats["id"], "score", 3)
             row[name] = {
-                "episodes": sum(_first_visible(ep) is not None for ep in eps),
+                "episodes": sum(first_visible(ep) is not None for ep in eps),
                 "detected": len(delays), "detected_within_1": sum(d <= 1 for d in delays),
                 "median_delay": float(np.median(delays)) if delays else None, "missed": missed,
                 "alarm_before_visible": early, "auroc_after_visible": au,
@@ -298,7 +301,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
         "seed": seed, "disturbances": list(disturbances), "env": dict(env or {}), "rows": rows,
         "traces": traces,
         "success": {name: [bool(ep["success"]) for ep in eps] for name, eps in test.items()},
-        "first_visible": {name: [_first_visible(ep) for ep in eps] for name, eps in test.items() if name != "id"},
+        "first_visible": {name: [first_visible(ep) for ep in eps] for name, eps in test.items() if name != "id"},
         "rollouts": {"calibration": cal_eps, **test},
     }
 

@@ -207,8 +207,8 @@ def calibrate_detector(exp, detector, *, episodes: int, seed: int, num_envs: int
     from ddp.contracts import NeedMoreEpisodes
 
     cap = max(episodes, max_episodes if max_episodes is not None else exp.recipe.eval.max_calibration_episodes)
-    runs = calibration_episodes(exp, episodes=episodes, seed=seed, num_envs=num_envs, progress=progress,
-                                parallel=parallel)
+    kw = dict(num_envs=num_envs, progress=progress, parallel=parallel)
+    runs = calibration_episodes(exp, episodes=episodes, seed=seed, **kw)
     while True:
         try:
             return detector.calibrate(runs, point_dims=exp.model.point_dims)
@@ -216,6 +216,11 @@ def calibrate_detector(exp, detector, *, episodes: int, seed: int, num_envs: int
             if len(runs) >= cap:
                 raise ValueError(f"{short} after {len(runs)} ID calibration episodes, the most "
                                  "eval.max_calibration_episodes allows (raise it, or alpha)") from None
-            more = min(short.more, cap - len(runs))
-            runs = runs + calibration_episodes(exp, episodes=more, seed=max(e["seed"] for e in runs) + 1,
-                                               num_envs=num_envs, progress=progress, parallel=parallel)
+            runs = more_calibration_episodes(exp, runs, short.more, cap=cap, **kw)
+
+
+def more_calibration_episodes(exp, runs: list[dict], more: int, *, cap: int, **kw) -> list[dict]:
+    """``runs`` and up to ``more`` further ID calibration episodes on the next unused seeds, ``cap`` in all
+    (``kw``: :func:`calibration_episodes`' ``num_envs``, ``progress``, ``parallel``)."""
+    return runs + calibration_episodes(exp, episodes=min(more, cap - len(runs)),
+                                       seed=max(e["seed"] for e in runs) + 1, **kw)

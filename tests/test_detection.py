@@ -143,6 +143,39 @@ def test_eval_rolls_out_more_calibration_episodes_until_enough_succeeded(tiny_re
     assert calls == [(100, 40), (140, 10)]
 
 
+def test_detect_rolls_out_more_calibration_episodes_once_for_every_statistic(tiny_recipe, monkeypatch):
+    """ddp detect: when a statistic lacks successful held-out episodes, more ID episodes come from the
+    same helper ddp eval uses, on fresh seeds, and every statistic is calibrated on all of them."""
+    from ddp import build
+    from ddp import detection, eval_runner
+
+    rng = np.random.default_rng(2)
+
+    def make(n, seed, disturbed=False):
+        seeds = list(range(seed, seed + n))
+        eps = episodes_from_scores(rng.gamma(2.0, 0.5, size=(n, 5)), success=[(s // 2) % 2 == 0 for s in seeds])
+        return [{**e, "seed": s, "disturbed": [disturbed and c >= 2 for c in range(5)]} for e, s in zip(eps, seeds)]
+
+    extra = []
+
+    def calibration(exp, *, episodes: int, seed: int, **kw):
+        extra.append((seed, episodes))
+        return make(episodes, seed)
+
+    monkeypatch.setattr(detection, "_rollouts",
+                        lambda exp, name, *, episodes, seed, env, **kw: make(episodes, seed, disturbed=name != "id"))
+    monkeypatch.setattr(eval_runner, "calibration_episodes", calibration)
+    exp = build(tiny_recipe)
+    variants = {"per_chunk": {"per_chunk": True}, "per_chunk_all": {"per_chunk": True, "threshold_on": "all"}}
+    rep = detection.detect(exp, episodes=4, calibration_episodes=40, variants=variants, progress=False)
+    assert extra and extra[0][0] == 100_000 + exp.recipe.eval.seed + 40  # the next unused seed
+    n_cal = rep["calibration_episodes"]
+    assert n_cal == 40 + sum(n for _, n in extra) and len(rep["rollouts"]["calibration"]) == n_cal
+    rows = {r["score"]: r for r in rep["rows"]}
+    assert rows["per_chunk"]["threshold_on"] == "successful" and rows["per_chunk"]["threshold_episodes"] >= 19
+    assert rows["per_chunk_all"]["threshold_episodes"] == n_cal // 2  # the same episodes, every held-out one
+
+
 def test_conformal_threshold_rule():
     assert conformal_threshold([3.0, 1.0, 2.0], 0.5) == 2.0  # ceil(4 x 0.5) = 2nd smallest
     assert conformal_threshold(list(range(1, 20)), 0.05) == 19.0  # n = 19: the largest

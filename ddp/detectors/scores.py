@@ -278,9 +278,9 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
             fits[-1] = True
         fit = [e for e, f in zip(episodes, fits) if f]
         held = [e for e, f in zip(episodes, fits) if not f]
+        n_fit = len(fit)
     else:
-        fit, held = list(episodes), list(episodes)
-    n_fit = len(fit) if spec.needs_reference and tau is None else 0
+        fit, held, n_fit = list(episodes), list(episodes), 0
     if tau is None and not held:
         raise ValueError(f"no ID episodes left for the threshold ({n} episodes, {n_fit} used to fit the score)")
     if tau is None and threshold_on == "successful":

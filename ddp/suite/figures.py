@@ -51,14 +51,14 @@ def _finish(plt, fig, handles, labels, title: str, path: Path) -> Path:
     return path
 
 
-def plot_table(table: dict, path: Path, title: str, reference: dict[str, float] | None = None,
+def plot_table(table: dict, columns: list[str], path: Path, title: str, reference: dict[str, float] | None = None,
                reference_label: str = "paper") -> Path:
-    """Small multiples of the success table; ``reference`` maps ``method|protocol|column`` to a rate in [0, 1]."""
+    """Small multiples of the success table, a panel per column (tasks, then ``avg:<benchmark>``);
+    ``reference`` maps ``method|protocol|column`` to a rate in [0, 1]."""
     from ddp.plots import _pyplot
 
     plt = _pyplot()
     reference = reference or {}
-    columns = [*table["tasks"], *(f"avg:{b}" for b in table["benchmarks"])]
     rows = table["rows"]
     palette = plt.get_cmap("tab10" if len(rows) <= 10 else "tab20")
     colours = [palette(i % palette.N) for i in range(len(rows))]
@@ -116,8 +116,7 @@ def plot_detection(results: list[dict], path: Path, title: str) -> Path | None:
         for k, run in enumerate(runs):
             for protocol in run["protocols"].values():
                 for ep in protocol.get("traces") or []:
-                    ys = [floor if v is None or v <= floor else v for v in ep["score"]]
-                    ys = [float("nan") if v is None else y for v, y in zip(ep["score"], ys)]
+                    ys = [float("nan") if v is None else max(v, floor) for v in ep["score"]]
                     disturbed = ep["first_visible"] is not None
                     if not disturbed:
                         colour, kind, z = "0.6", "id", 1

@@ -162,7 +162,8 @@ def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate(results)
     (out / "table.md").write_text(markdown(table, title, reference))
-    extra = {"reference": {"label": reference["label"], "cells": reference_cells(table, reference)}} if reference else {}
+    ref = reference_cells(table, reference)
+    extra = {"reference": {"label": reference["label"], "cells": ref}} if reference else {}
     (out / "table.json").write_text(results_json.dumps({**table, "rows": [list(r) for r in table["rows"]], **extra}))
     cols = _columns(table)
     with open(out / "table.csv", "w", newline="") as f:
@@ -176,7 +177,7 @@ def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
             w.writerow(row)
     paths = [out / "table.md", out / "table.json", out / "table.csv"]
     try:
-        paths.append(plot_table(table, out / "table.png", title, reference_cells(table, reference),
+        paths.append(plot_table(table, cols, out / "table.png", title, ref,
                                 reference["label"] if reference else "paper"))
         traces = plot_detection(results, out / "detection.png", f"{title}: the detector's statistic per episode")
         if traces is not None:

@@ -51,16 +51,13 @@ def traces(protocol: dict) -> list[dict] | None:
     digits), the controller's mode per chunk as a string of 0 / 1, the first chunk at which the
     disturbance was visible and the outcome. None when the protocol's detector records no statistic
     (no detector, or the oracle schedule)."""
-    episodes = protocol.get("per_episode") or []
-    if not any(_round(v) is not None for e in episodes for v in e.get("score") or []):
-        return None
-    out = []
-    for e in episodes:
-        visible = next((c for c, f in enumerate(e.get("disturbed") or []) if f), None)
-        out.append({"success": bool(e.get("success")), "first_visible": visible,
-                    "score": [_round(v) for v in e.get("score") or []],
-                    "mode": "".join("1" if m >= 0.5 else "0" for m in e.get("mode") or [])})
-    return out
+    from ddp.detection import first_visible
+
+    out = [{"success": bool(e.get("success")), "first_visible": first_visible(e),
+            "score": [_round(v) for v in e.get("score") or []],
+            "mode": "".join("1" if m >= 0.5 else "0" for m in e.get("mode") or [])}
+           for e in protocol.get("per_episode") or []]
+    return out if any(v is not None for e in out for v in e["score"]) else None
 
 
 def _summary(protocol: dict) -> dict:
