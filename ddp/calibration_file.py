@@ -1,6 +1,6 @@
 """A detector's calibration saved beside its checkpoint, so it is fitted once and can ship to the robot.
 
-``ddp eval`` (and ``ddp detect --save``) writes ``<checkpoint stem>.calibration.json`` next to the
+``ddp eval`` writes ``<checkpoint stem>.calibration.json`` next to the
 checkpoint: the fitted statistic and threshold (the detector's ``calibration()``), the target
 false-alarm rate, how many ID episodes and which seeds produced it, and what it is valid for: a
 digest of the model's weights, the detector section, the ID env overrides and the sampling setup
