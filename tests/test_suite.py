@@ -59,6 +59,19 @@ def test_expansion(suite_file):
     assert len({r.recipe_hash for r in suite.runs}) == len(suite.runs)
 
 
+def test_how_a_run_is_evaluated_is_not_part_of_its_hash(suite_file):
+    run = load_suite(suite_file).runs[0]
+
+    def variant(**eval_settings):
+        recipe = copy.deepcopy(run.recipe)
+        recipe["eval"].update(eval_settings)
+        return type(run)(**{**run.__dict__, "recipe": recipe})
+
+    assert variant(num_envs=10, parallel=True, video=True, device="cpu").recipe_hash == run.recipe_hash
+    assert variant(max_steps=8).recipe_hash != run.recipe_hash  # what is measured
+    assert variant(calibration_episodes=60).recipe_hash != run.recipe_hash
+
+
 def test_select_runs_a_part_and_names_the_closest_label(suite_file):
     suite = load_suite(suite_file)
     part = select(suite, methods=["dp3"], seeds=[1])

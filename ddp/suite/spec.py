@@ -33,6 +33,14 @@ from ddp.errors import RecipeError
 
 __all__ = ["RunSpec", "SuiteSpec", "load_suite"]
 
+#: recipe settings that say how a run is evaluated, not what it measures: left out of its hash, so a suite
+#: can step its environments as a batch (``eval.num_envs``: the same episodes and seeds, other sampling
+#: noise, about half the evaluation time on a CPU), move them to another device or record videos without
+#: running again what is stored (``eval.output_dir`` stays in: the suite derives it from the run's id, and
+#: results stored before this list existed keep their hash)
+EXECUTION_ONLY = {"eval": ("num_envs", "parallel", "device", "video", "video_episodes", "video_size", "video_fps",
+                           "video_camera")}
+
 KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "output_dir", "results_dir", "reference"}
 
 
@@ -55,8 +63,12 @@ class RunSpec:
 
     @property
     def recipe_hash(self) -> str:
-        """What the run is: a changed recipe, protocol list or episode count is another run."""
-        data = {"recipe": self.recipe, "protocols": self.protocols, "episodes": self.episodes}
+        """What the run is: a changed recipe, protocol list or episode count is another run; a setting of
+        how it is evaluated (``EXECUTION_ONLY``) is not."""
+        recipe = {k: v for k, v in self.recipe.items() if k != "eval"}
+        if "eval" in self.recipe:
+            recipe["eval"] = {k: v for k, v in self.recipe["eval"].items() if k not in EXECUTION_ONLY["eval"]}
+        data = {"recipe": recipe, "protocols": self.protocols, "episodes": self.episodes}
         return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
