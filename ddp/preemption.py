@@ -24,6 +24,9 @@ class Preempted(KeyboardInterrupt):
         self.signum = signum
         super().__init__(f"stopped by {signal.Signals(signum).name}")
 
+    def __reduce__(self):  # a pool worker sends it back to the suite pickled: rebuild it from the signal
+        return type(self), (self.signum,)
+
 
 def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()

@@ -117,6 +117,16 @@ def test_second_ctrl_c_during_the_save_cannot_break_it(tmp_path, monkeypatch):
     assert not list((tmp_path / "run").glob(".last.pt.*.tmp"))
 
 
+def test_preempted_crosses_a_process_boundary():
+    """A suite's pool worker sends the run's Preempted back pickled; it must arrive as itself (it broke the pool)."""
+    import pickle
+
+    from ddp.preemption import Preempted
+
+    back = pickle.loads(pickle.dumps(Preempted(signal.SIGHUP)))
+    assert isinstance(back, Preempted) and back.signum == signal.SIGHUP and str(back) == "stopped by SIGHUP"
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
 def test_preemption_signal_saves_and_resumes(tmp_path, sig):
     r = tiny(tmp_path, max_steps=100_000, log_every_steps=1)

@@ -227,6 +227,7 @@ def test_a_stopped_pool_saves_its_runs_and_starts_no_queued_one(suite_file):
                 with contextlib.suppress(OSError):
                     os.kill(int(c), signal.SIGKILL)
     assert proc.returncode == 128 + signal.SIGTERM, out[-2000:]
+    assert "Traceback" not in out, out[-3000:]  # a clean stop: one line, no thread dying in the pool
     assert all((r / "last.pt").exists() for r in runs[:2]), out[-2000:]
     assert not any((r / "log.txt").exists() for r in runs[2:]), out[-2000:]  # queued: never started
     for _ in range(20):  # workers exit before the suite does; allow for the kernel's bookkeeping
