@@ -6,6 +6,7 @@ import argparse
 import fnmatch
 import os
 import sys
+from pathlib import Path
 
 from ddp.errors import DDPError
 from ddp.preemption import Preempted
@@ -209,10 +210,19 @@ def cmd_suite(args) -> int:
     chosen = select(suite, tasks=args.tasks.split(",") if args.tasks else None,
                     methods=args.methods.split(",") if args.methods else None, seeds=seeds)
     if args.dry_run:
+        store, counts, resumes = ResultStore(suite.results_dir), {"done": 0, "stale": 0, "missing": 0}, 0
         for run in chosen.runs:
+            state = store.status(run)
+            counts[state] += 1
+            out = run.recipe["train"]["output_dir"]
+            resume = state != "done" and (Path(out) / "last.pt").is_file()
+            resumes += resume
+            label = {"done": "done", "stale": "stale (its recipe changed: runs again)", "missing": "to run"}[state]
             protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
-            print(f"{run.run_id}: {run.recipe['name']}, protocols {protocols}, -> {run.recipe['train']['output_dir']}")
-        print(f"{len(chosen.runs)} runs; results in {suite.results_dir}")
+            print(f"{run.run_id}: {label}{', resumes ' + out + '/last.pt' if resume else ''}; {run.recipe['name']}, "
+                  f"protocols {protocols}, -> {out}")
+        print(f"{len(chosen.runs)} runs: {counts['done']} done, {counts['stale'] + counts['missing']} to run "
+              f"({counts['stale']} stale, {resumes} resuming a checkpoint); results in {suite.results_dir}")
         return 0
     failed = None
     if not args.report:
@@ -388,7 +398,8 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--tasks", help="comma-separated task labels to run (default: all; the table always covers every stored run)")
     p.add_argument("--methods", help="comma-separated method labels to run (default: all)")
     p.add_argument("--seeds", help="comma-separated seeds to run (default: all); runs go seed by seed")
-    p.add_argument("--dry-run", action="store_true", help="list the runs and exit")
+    p.add_argument("--dry-run", action="store_true",
+                   help="list the runs, which are stored, stale or to run (and which resume a checkpoint), and exit")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_suite)
 

@@ -111,6 +111,29 @@ def test_bad_suite_files_are_one_line(suite_file, edit, message):
     assert "\n" not in str(err.value)
 
 
+def test_dry_run_says_which_runs_are_stored_stale_or_resume(suite_file, capsys):
+    from ddp.cli import main
+
+    suite = load_suite(suite_file)
+    done, stale, resumed = suite.runs[:3]
+    store = ResultStore(suite.results_dir)
+    store.save(done, _result(done.task, done.method, done.seed, {"id": 1.0}))
+    store.save(stale, _result(stale.task, stale.method, stale.seed, {"id": 1.0}))
+    data = json.loads(store.path(stale).read_text())
+    store.path(stale).write_text(json.dumps({**data, "recipe_hash": "0" * 16}))  # made for another recipe
+    out = suite_file.parent / resumed.recipe["train"]["output_dir"]
+    out.mkdir(parents=True)
+    (out / "last.pt").write_bytes(b"")
+    assert main(["suite", str(suite_file), "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith(f"{done.run_id}: done;")
+    assert lines[1].startswith(f"{stale.run_id}: stale (its recipe changed: runs again);")
+    assert lines[2].startswith(f"{resumed.run_id}: to run, resumes {resumed.recipe['train']['output_dir']}/last.pt;")
+    assert lines[3].startswith(f"{suite.runs[3].run_id}: to run;")
+    assert lines[-1].startswith("8 runs: 1 done, 7 to run (1 stale, 1 resuming a checkpoint)")
+    assert not (suite_file.parent / "runs/suites/tiny_suite/near__ddp__seed0/log.txt").exists()  # nothing ran
+
+
 def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
     import ddp.suite.runner as runner
 

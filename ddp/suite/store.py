@@ -38,6 +38,18 @@ class ResultStore:
         ok = isinstance(data, dict) and data.get("format") == FORMAT and data.get("complete") is True
         return data if ok and data.get("recipe_hash") == run.recipe_hash else None
 
+    def status(self, run: RunSpec) -> str:
+        """``"done"`` (a valid result is stored), ``"stale"`` (one is stored for another recipe: the run goes
+        again) or ``"missing"`` (none, or a half-written or corrupt one)."""
+        if self.load(run) is not None:
+            return "done"
+        try:
+            data = json.loads(self.path(run).read_text())
+        except (OSError, ValueError):
+            return "missing"
+        complete = isinstance(data, dict) and data.get("format") == FORMAT and data.get("complete") is True
+        return "stale" if complete else "missing"
+
     def save(self, run: RunSpec, result: dict) -> Path:
         data = {"format": FORMAT, "complete": True, "recipe_hash": run.recipe_hash, **result}
         text = results_json.dumps(data)
