@@ -293,6 +293,21 @@ def test_aggregation_math(tmp_path):
     assert (tmp_path / "table.csv").read_text().splitlines()[0].startswith("method,protocol,a_mean,a_std")
 
 
+def test_report_states_what_the_runs_cost(tmp_path):
+    results = []
+    for seed, (train, wall) in enumerate([(600.0, 900.0), (1200.0, 1500.0), (900.0, 1200.0)]):
+        r = _result("a", "ddp", seed, {"id": 1.0, "ood": 0.5})
+        r["protocols"]["id"]["seconds"], r["protocols"]["ood"]["seconds"] = 60.0, 120.0
+        results.append({**r, "train": {"steps": 3000, "seconds": train}, "wall_seconds": wall})
+    results.append({**_result("a", "dp3", 0, {"id": 1.0}), "train": {"steps": 1000, "seconds": 60.0},
+                    "wall_seconds": 90.0})
+    paths = write_suite_report(results, tmp_path, "t")
+    cost = (tmp_path / "cost.md").read_text().splitlines()
+    assert tmp_path / "cost.md" in paths
+    assert "| ddp | 3 | 3000 | 15.0 [10.0, 20.0] | 3.0 [3.0, 3.0] | 20.0 [15.0, 25.0] | 1.0 |" in cost
+    assert "| dp3 | 1 | 1000 | 1.0 [1.0, 1.0] | 0.0 [0.0, 0.0] | 1.5 [1.5, 1.5] | 0.0 |" in cost
+
+
 def test_stored_results_keep_the_detector_traces_and_the_report_draws_them(tmp_path):
     """A run's stored result keeps, per protocol with a detector statistic, each episode's statistic per
     chunk, mode and first visible chunk (one line per trace in the JSON); the report draws them."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import math
+import statistics
 from pathlib import Path
 
 import numpy as np
@@ -154,14 +155,37 @@ def markdown(table: dict, title: str, reference: dict | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _minutes(seconds: list[float]) -> str:
+    return f"{statistics.median(seconds) / 60:.1f} [{min(seconds) / 60:.1f}, {max(seconds) / 60:.1f}]"
+
+
+def cost_markdown(results: list[dict], title: str) -> str:
+    """What the stored runs cost, per method: training time (all of it, across resumes), the evaluation
+    protocols' time, and the wall time each run recorded (since its last start, for a resumed run)."""
+    lines = [f"{title}: compute per stored run, in minutes (median [min, max]); totals in hours", "",
+             "| method | runs | training steps | training | evaluation protocols | wall time | total wall time |",
+             "|---|---|---|---|---|---|---|"]
+    for method in sorted({r["method"] for r in results}):
+        runs = [r for r in results if r["method"] == method]
+        train = [float(r["train"]["seconds"]) for r in runs if (r.get("train") or {}).get("seconds") is not None]
+        evals = [sum(float(p.get("seconds") or 0.0) for p in r["protocols"].values()) for r in runs]
+        wall = [float(r["wall_seconds"]) for r in runs if r.get("wall_seconds") is not None]
+        steps = sorted({int(r["train"]["steps"]) for r in runs if (r.get("train") or {}).get("steps") is not None})
+        lines.append(f"| {method} | {len(runs)} | {', '.join(map(str, steps)) or '-'} | "
+                     f"{_minutes(train) if train else '-'} | {_minutes(evals)} | {_minutes(wall) if wall else '-'} | "
+                     f"{sum(wall) / 3600:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
 def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
                        reference: dict | None = None) -> list[Path]:
-    """table.md, table.json, table.csv and table.png under ``out_dir``; returns their paths. A ``reference``
+    """table.md, table.json, table.csv, cost.md and table.png under ``out_dir``; returns their paths. A ``reference``
     (the suite's published numbers) adds rows to table.md and a ``reference`` entry to table.json."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate(results)
     (out / "table.md").write_text(markdown(table, title, reference))
+    (out / "cost.md").write_text(cost_markdown(results, title))
     ref = reference_cells(table, reference)
     extra = {"reference": {"label": reference["label"], "cells": ref}} if reference else {}
     (out / "table.json").write_text(results_json.dumps({**table, "rows": [list(r) for r in table["rows"]], **extra}))
@@ -175,7 +199,7 @@ def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
                 cell = table["cells"].get(f"{m}|{p}|{c}")
                 row += ["" if cell is None else cell["mean"], "" if cell is None else cell.get("std", "")]
             w.writerow(row)
-    paths = [out / "table.md", out / "table.json", out / "table.csv"]
+    paths = [out / "table.md", out / "table.json", out / "table.csv", out / "cost.md"]
     try:
         paths.append(plot_table(table, cols, out / "table.png", title, ref,
                                 reference["label"] if reference else "paper"))
