@@ -28,27 +28,27 @@ class ResultStore:
     def path(self, run: RunSpec) -> Path:
         return self.directory / f"{run.run_id}.json"
 
-    def load(self, run: RunSpec) -> dict | None:
-        """The stored result of ``run`` if it is complete and made for the run's current recipe, else None."""
-        path = self.path(run)
+    def _complete(self, run: RunSpec) -> dict | None:
+        """The stored result of ``run``, whatever recipe made it, if it is whole; else None."""
         try:
-            data = json.loads(path.read_text())
+            data = json.loads(self.path(run).read_text())
         except (OSError, ValueError):
             return None
         ok = isinstance(data, dict) and data.get("format") == FORMAT and data.get("complete") is True
-        return data if ok and data.get("recipe_hash") == run.recipe_hash else None
+        return data if ok else None
+
+    def load(self, run: RunSpec) -> dict | None:
+        """The stored result of ``run`` if it is complete and made for the run's current recipe, else None."""
+        data = self._complete(run)
+        return data if data is not None and data.get("recipe_hash") == run.recipe_hash else None
 
     def status(self, run: RunSpec) -> str:
         """``"done"`` (a valid result is stored), ``"stale"`` (one is stored for another recipe: the run goes
         again) or ``"missing"`` (none, or a half-written or corrupt one)."""
-        if self.load(run) is not None:
-            return "done"
-        try:
-            data = json.loads(self.path(run).read_text())
-        except (OSError, ValueError):
+        data = self._complete(run)
+        if data is None:
             return "missing"
-        complete = isinstance(data, dict) and data.get("format") == FORMAT and data.get("complete") is True
-        return "stale" if complete else "missing"
+        return "done" if data.get("recipe_hash") == run.recipe_hash else "stale"
 
     def save(self, run: RunSpec, result: dict) -> Path:
         data = {"format": FORMAT, "complete": True, "recipe_hash": run.recipe_hash, **result}
