@@ -200,6 +200,7 @@ def cmd_detect(args) -> int:
 def cmd_suite(args) -> int:
     from ddp.suite import SuiteRunsFailed, load_suite, run_suite, select, write_suite_report
     from ddp.suite.store import ResultStore
+    from ddp.suite.superseded import superseded
 
     _at_least_one(workers=args.workers, threads=args.threads)
     suite = load_suite(args.suite)
@@ -210,19 +211,26 @@ def cmd_suite(args) -> int:
     chosen = select(suite, tasks=args.tasks.split(",") if args.tasks else None,
                     methods=args.methods.split(",") if args.methods else None, seeds=seeds)
     if args.dry_run:
-        store, counts, resumes = ResultStore(suite.results_dir), {"done": 0, "stale": 0, "missing": 0}, 0
+        store, counts = ResultStore(suite.results_dir), {"done": 0, "stale": 0, "missing": 0}
+        resumes = retrains = 0
         for run in chosen.runs:
             state = store.status(run)
             counts[state] += 1
             out = run.recipe["train"]["output_dir"]
-            resume = state != "done" and (Path(out) / "last.pt").is_file()
-            resumes += resume
+            found = state != "done" and (Path(out) / "last.pt").is_file()
+            changed = superseded(out, run.recipe, args.suite) if found else None
+            resumes += found and not changed
+            retrains += bool(changed)
             label = {"done": "done", "stale": "stale (its recipe changed: runs again)", "missing": "to run"}[state]
+            if changed:
+                label += f", trains from scratch (its last.pt is for another recipe: {changed}; set aside)"
+            elif found:
+                label += f", resumes {out}/last.pt"
             protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
-            print(f"{run.run_id}: {label}{', resumes ' + out + '/last.pt' if resume else ''}; {run.recipe['name']}, "
-                  f"protocols {protocols}, -> {out}")
+            print(f"{run.run_id}: {label}; {run.recipe['name']}, protocols {protocols}, -> {out}")
         print(f"{len(chosen.runs)} runs: {counts['done']} done, {counts['stale'] + counts['missing']} to run "
-              f"({counts['stale']} stale, {resumes} resuming a checkpoint); results in {suite.results_dir}")
+              f"({counts['stale']} stale, {resumes} resuming a checkpoint, {retrains} setting one aside); "
+              f"results in {suite.results_dir}")
         return 0
     failed = None
     if not args.report:

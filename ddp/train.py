@@ -65,25 +65,35 @@ def _show(value) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def check_resumable(path: Path, state: dict, current: dict) -> None:
-    """Refuse, in one line, a checkpoint that cannot continue this recipe's run."""
-    missing = [k for k in RESUME_KEYS if k not in state]
-    if missing:
-        raise CheckpointError(f"{path}: cannot resume: the checkpoint lacks {', '.join(missing)}")
+def resume_conflicts(path: Path, state: dict, current: dict) -> dict[str, tuple]:
+    """The recipe keys that keep checkpoint ``state`` (read from ``path``) from continuing the run of the
+    resolved recipe ``current``: ``{key: (stored, current)}``, empty when it can resume."""
     stored = stored_recipe(path, state)  # a stored recipe that is not a mapping no longer passes as "no change"
     task = current.get("task", {})
-    changes = {
+    return {
         k: v for k, v in recipe_changes(stored, current).items()
         if not any(k == r or k.startswith(r + ".") for r in RESUMABLE)
         # an env section now renders what task says (older recipes stored the env's own default)
         and not (k in ("env.num_points", "env.point_dim") and v[1] == task.get(k.split(".")[1]))
     }
+
+
+def describe_changes(changes: dict[str, tuple], shown: int = 4) -> str:
+    """``key: old -> new, ...`` for the first ``shown`` changes, and how many more."""
+    text = ", ".join(f"{k}: {_show(a)} -> {_show(b)}" for k, (a, b) in list(changes.items())[:shown])
+    return text + (f" (and {len(changes) - shown} more)" if len(changes) > shown else "")
+
+
+def check_resumable(path: Path, state: dict, current: dict) -> None:
+    """Refuse, in one line, a checkpoint that cannot continue this recipe's run."""
+    missing = [k for k in RESUME_KEYS if k not in state]
+    if missing:
+        raise CheckpointError(f"{path}: cannot resume: the checkpoint lacks {', '.join(missing)}")
+    changes = resume_conflicts(path, state, current)
     if changes:
-        shown = ", ".join(f"{k}: {_show(a)} -> {_show(b)}" for k, (a, b) in list(changes.items())[:4])
-        more = f" (and {len(changes) - 4} more)" if len(changes) > 4 else ""
         raise CheckpointError(
-            f"{path}: cannot resume: the recipe differs from the run's ({shown}{more}); use --no-resume to start "
-            f"over, or another --output-dir (may change on resume: {', '.join(RESUMABLE)})"
+            f"{path}: cannot resume: the recipe differs from the run's ({describe_changes(changes)}); use "
+            f"--no-resume to start over, or another --output-dir (may change on resume: {', '.join(RESUMABLE)})"
         )
 
 

@@ -130,7 +130,7 @@ def test_dry_run_says_which_runs_are_stored_stale_or_resume(suite_file, capsys):
     assert lines[1].startswith(f"{stale.run_id}: stale (its recipe changed: runs again);")
     assert lines[2].startswith(f"{resumed.run_id}: to run, resumes {resumed.recipe['train']['output_dir']}/last.pt;")
     assert lines[3].startswith(f"{suite.runs[3].run_id}: to run;")
-    assert lines[-1].startswith("8 runs: 1 done, 7 to run (1 stale, 1 resuming a checkpoint)")
+    assert lines[-1].startswith("8 runs: 1 done, 7 to run (1 stale, 1 resuming a checkpoint, 0 setting one aside)")
     assert not (suite_file.parent / "runs/suites/tiny_suite/near__ddp__seed0/log.txt").exists()  # nothing ran
 
 
@@ -189,6 +189,43 @@ def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
         assert a["train"]["loss"] == pytest.approx(b["train"]["loss"], rel=1e-6), run.run_id
         assert {p: v["success_rate"] for p, v in a["protocols"].items()} == \
             {p: v["success_rate"] for p, v in b["protocols"].items()}
+
+
+def test_a_checkpoint_for_another_recipe_is_set_aside_and_the_run_trains_afresh(suite_file, capsys):
+    """The suite file changed what a run trains on: its old folder moves to <name>.superseded-<time> (nothing
+    is deleted) and the run starts over; a change that only evaluates differently still resumes."""
+    from ddp.cli import main
+    from ddp.suite import execute_run
+
+    run = select(load_suite(suite_file), tasks=["near"], methods=["dp3"], seeds=[0]).runs[0]
+    run_dir = suite_file.parent / run.recipe["train"]["output_dir"]
+    execute_run(run, threads=1)
+    first = (run_dir / "last.pt").read_bytes()
+
+    evaluated = copy.deepcopy(run.recipe)
+    evaluated["eval"]["episodes"] = 2  # how it is evaluated: the checkpoint resumes
+    execute_run(type(run)(**{**run.__dict__, "recipe": evaluated}), threads=1)
+    assert not list(run_dir.parent.glob("*.superseded-*")) and "another recipe" not in (run_dir / "log.txt").read_text()
+    first = (run_dir / "last.pt").read_bytes()
+
+    changed = copy.deepcopy(run.recipe)
+    changed["train"]["lr"] = 0.003  # what it trains: the checkpoint cannot continue it
+    changed_run = type(run)(**{**run.__dict__, "recipe": changed})
+    data = yaml.safe_load(suite_file.read_text())
+    data["set"] = ["train.lr=0.003"]
+    suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert main(["suite", str(suite_file), "--dry-run", "--tasks", "near", "--methods", "dp3", "--seeds", "0"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"{run.run_id}: to run, trains from scratch (its last.pt is for another recipe: "
+                             "train.lr: 0.002 -> 0.003; set aside);")
+    assert out[-1].startswith("1 runs: 0 done, 1 to run (0 stale, 0 resuming a checkpoint, 1 setting one aside)")
+
+    result = execute_run(changed_run, threads=1)
+    old = list(run_dir.parent.glob(f"{run_dir.name}.superseded-*"))
+    assert len(old) == 1 and (old[0] / "last.pt").read_bytes() == first  # kept, untouched
+    assert result["train"]["steps"] == 2 and (run_dir / "last.pt").read_bytes() != first
+    log = (run_dir / "log.txt").read_text()
+    assert "trained for another recipe (train.lr: 0.002 -> 0.003)" in log and log.count("started") == 1
 
 
 @pytest.mark.parametrize("workers", [1, 2])
