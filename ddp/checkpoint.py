@@ -29,15 +29,17 @@ def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
     return atomic_write(path, lambda f: torch.save(data, f))
 
 
-def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Read a checkpoint; a missing, truncated or foreign file raises :class:`CheckpointError`."""
+def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu", *,
+                    mmap: bool = False) -> dict[str, Any]:
+    """Read a checkpoint; a missing, truncated or foreign file raises :class:`CheckpointError`. ``mmap``
+    maps the tensors instead of reading them (for a caller that only looks at the recipe or step)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
         with warnings.catch_warnings():  # torch warns about pickle protocols before refusing: the error says it
             warnings.simplefilter("ignore")
-            data = torch.load(path, map_location=map_location, weights_only=True)
+            data = torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
     except pickle.UnpicklingError as err:
         text = " ".join(str(err).split())
         found = re.search(r"Unsupported global: GLOBAL (\S+)", text) or re.search(r"Trying to load [^.]*", text)

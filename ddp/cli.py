@@ -223,7 +223,8 @@ def cmd_suite(args) -> int:
             retrains += bool(changed)
             label = {"done": "done", "stale": "stale (its recipe changed: runs again)", "missing": "to run"}[state]
             if changed:
-                label += f", trains from scratch (its last.pt is for another recipe: {changed}; set aside)"
+                label += (f", trains from scratch (its last.pt cannot continue this recipe: {changed}; the folder "
+                          "will be set aside)")
             elif found:
                 label += f", resumes {out}/last.pt"
             protocols = ",".join(run.protocols) if run.protocols else "the recipe's"

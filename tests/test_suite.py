@@ -193,39 +193,57 @@ def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
 
 def test_a_checkpoint_for_another_recipe_is_set_aside_and_the_run_trains_afresh(suite_file, capsys):
     """The suite file changed what a run trains on: its old folder moves to <name>.superseded-<time> (nothing
-    is deleted) and the run starts over; a change that only evaluates differently still resumes."""
+    is deleted) and the run starts over; a change that only evaluates differently still resumes; nothing
+    moves while another process holds the folder's run lock."""
+    from ddp.checkpoint import load_checkpoint
     from ddp.cli import main
+    from ddp.recipe import load_yaml
+    from ddp.run_dir import RunLock
     from ddp.suite import execute_run
+    from ddp.suite.superseded import set_aside_if_superseded, superseded
 
     run = select(load_suite(suite_file), tasks=["near"], methods=["dp3"], seeds=[0]).runs[0]
     run_dir = suite_file.parent / run.recipe["train"]["output_dir"]
     execute_run(run, threads=1)
-    first = (run_dir / "last.pt").read_bytes()
 
-    evaluated = copy.deepcopy(run.recipe)
-    evaluated["eval"]["episodes"] = 2  # how it is evaluated: the checkpoint resumes
-    execute_run(type(run)(**{**run.__dict__, "recipe": evaluated}), threads=1)
-    assert not list(run_dir.parent.glob("*.superseded-*")) and "another recipe" not in (run_dir / "log.txt").read_text()
-    first = (run_dir / "last.pt").read_bytes()
+    def variant(**sections):
+        recipe = copy.deepcopy(run.recipe)
+        for section, values in sections.items():
+            recipe[section].update(values)
+        return type(run)(**{**run.__dict__, "recipe": recipe})
 
-    changed = copy.deepcopy(run.recipe)
-    changed["train"]["lr"] = 0.003  # what it trains: the checkpoint cannot continue it
-    changed_run = type(run)(**{**run.__dict__, "recipe": changed})
+    # how it is evaluated, or more steps: the checkpoint resumes
+    for kept in (variant(eval={"episodes": 2}), variant(controller={"safe_lift": 0.05}),
+                 variant(train={"max_steps": 3})):
+        assert superseded(run_dir, kept.recipe) is None
+    execute_run(variant(eval={"episodes": 2}), threads=1)
+    assert not list(run_dir.parent.glob("*.superseded-*")) and "cannot continue" not in (run_dir / "log.txt").read_text()
+    assert superseded(run_dir, variant(train={"max_steps": 1}).recipe) == \
+        "train.max_steps: 1, below the checkpoint's step 2"
+
+    # what it trains: the checkpoint cannot continue it
+    changed = variant(train={"lr": 0.003})
     data = yaml.safe_load(suite_file.read_text())
     data["set"] = ["train.lr=0.003"]
     suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
     assert main(["suite", str(suite_file), "--dry-run", "--tasks", "near", "--methods", "dp3", "--seeds", "0"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert out[0].startswith(f"{run.run_id}: to run, trains from scratch (its last.pt is for another recipe: "
-                             "train.lr: 0.002 -> 0.003; set aside);")
+    assert out[0].startswith(f"{run.run_id}: to run, trains from scratch (its last.pt cannot continue this recipe: "
+                             "train.lr: 0.002 -> 0.003; the folder will be set aside);")
     assert out[-1].startswith("1 runs: 0 done, 1 to run (0 stale, 0 resuming a checkpoint, 1 setting one aside)")
 
-    result = execute_run(changed_run, threads=1)
+    with RunLock(run_dir):  # another process trains there: nothing moves
+        assert set_aside_if_superseded(run_dir, changed.recipe) is None
+    assert not list(run_dir.parent.glob("*.superseded-*"))
+
+    first = (run_dir / "last.pt").read_bytes()
+    result = execute_run(changed, threads=1)
     old = list(run_dir.parent.glob(f"{run_dir.name}.superseded-*"))
     assert len(old) == 1 and (old[0] / "last.pt").read_bytes() == first  # kept, untouched
-    assert result["train"]["steps"] == 2 and (run_dir / "last.pt").read_bytes() != first
+    assert load_yaml(load_checkpoint(run_dir / "last.pt")["recipe"])["train"]["lr"] == 0.003  # trained afresh
+    assert result["train"]["steps"] == 2
     log = (run_dir / "log.txt").read_text()
-    assert "trained for another recipe (train.lr: 0.002 -> 0.003)" in log and log.count("started") == 1
+    assert "cannot continue this recipe (train.lr: 0.002 -> 0.003)" in log and log.count("started") == 1
 
 
 @pytest.mark.parametrize("workers", [1, 2])

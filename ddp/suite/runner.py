@@ -1,8 +1,8 @@
 """Running a suite's runs: one function per run, and the executors that call it.
 
 :func:`execute_run` trains a run's recipe (resuming its own checkpoint if one is there and can continue
-this recipe; a folder whose checkpoint was trained for another recipe is set aside first, see
-:mod:`ddp.suite.superseded`), evaluates it and returns a small result (success and detection summary per protocol, wall times); its
+this recipe; a folder whose checkpoint cannot is set aside first, see :mod:`ddp.suite.superseded`),
+evaluates it and returns a small result (success and detection summary per protocol, wall times); its
 stdout / stderr go to ``<run dir>/log.txt``. :func:`run_suite` skips the runs the store already holds,
 calls ``execute_run`` for the rest through the chosen executor and stores each result as soon as
 it arrives, printing one line per run started and finished:
@@ -36,7 +36,7 @@ from pathlib import Path
 from ddp.errors import DDPError
 from ddp.suite.spec import RunSpec, SuiteSpec
 from ddp.suite.store import ResultStore
-from ddp.suite.superseded import set_aside, superseded
+from ddp.suite.superseded import set_aside_if_superseded
 
 __all__ = ["SuiteRunsFailed", "execute_run", "run_suite", "traces"]
 
@@ -108,13 +108,12 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
         torch.set_num_threads(threads)
     run_dir = Path(run.recipe["train"]["output_dir"])
     t0 = time.perf_counter()
-    changed = superseded(run_dir, run.recipe, run.run_id)
-    moved = set_aside(run_dir) if changed else None  # before this run's log opens in the folder
+    moved = set_aside_if_superseded(run_dir, run.recipe, run.run_id)  # before this run's log opens there
     run_dir.mkdir(parents=True, exist_ok=True)
     with open(run_dir / "log.txt", "a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
         if moved is not None:
-            print(f"== {run.run_id}: the checkpoint here was trained for another recipe ({changed}); its folder "
-                  f"moved to {moved}, training starts over", flush=True)
+            print(f"== {run.run_id}: the checkpoint here cannot continue this recipe ({moved[0]}); its folder "
+                  f"moved to {moved[1]}, training starts over", flush=True)
         print(f"== {run.run_id} started (threads {torch.get_num_threads()})", flush=True)
         try:
             exp = build(run.recipe)

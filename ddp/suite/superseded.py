@@ -1,11 +1,13 @@
 """A run folder whose checkpoint was trained for another recipe: found before the run starts, and set aside.
 
-A suite's run trains in its own folder and resumes the ``last.pt`` it finds there. When the suite file
-changes a run's recipe in a way training cannot continue from (the observations, the data, the model: any
-key outside ``ddp.train.RESUMABLE``), the stored result is stale and the run has to train again from
-scratch. :func:`superseded` says why (``ddp suite --dry-run`` prints it) and :func:`set_aside` renames the
-folder to ``<name>.superseded-<UTC time>`` beside it, so that nothing is deleted and the run starts afresh.
-A checkpoint that only evaluates differently (``eval``, ``controller``, more steps) still resumes.
+A suite's run trains in its own folder and resumes the ``last.pt`` it finds there (a finished run whose
+result went stale, or an interrupted one). When the suite file changed the run's recipe in a way training
+cannot continue from (any key outside ``ddp.train.RESUMABLE``: the observations, the data, the model, the
+optimiser), or lowered ``train.max_steps`` below the checkpoint's step, the run has to train again from
+scratch. :func:`superseded` says why (``ddp suite --dry-run`` prints it) and :func:`set_aside_if_superseded`
+renames the folder to ``<name>.superseded-<UTC time>`` beside it, under the folder's run lock, so that
+nothing is deleted and no folder is moved while a trainer writes in it. A checkpoint that only evaluates
+differently (``eval``, ``controller``) or trains on to a higher step budget still resumes.
 """
 
 from __future__ import annotations
@@ -13,15 +15,15 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from ddp.errors import CheckpointError
+from ddp.errors import DDPError
 
-__all__ = ["superseded", "set_aside"]
+__all__ = ["superseded", "set_aside", "set_aside_if_superseded"]
 
 
 def superseded(run_dir: str | Path, recipe: dict, source: str | None = None) -> str | None:
-    """The recipe keys that keep ``run_dir/last.pt`` from continuing ``recipe`` (``key: old -> new, ...``),
-    or None: no checkpoint, one that resumes, or one that training reports on itself (unreadable, or
-    lacking its training state)."""
+    """Why ``run_dir/last.pt`` cannot continue ``recipe`` (``key: old -> new, ...``), or None: no
+    checkpoint, one that resumes, or one that training reports on itself (unreadable, no stored recipe,
+    or a recipe that does not validate)."""
     from ddp.checkpoint import load_checkpoint
     from ddp.schema import validate
     from ddp.train import LAST, describe_changes, resume_conflicts
@@ -30,10 +32,17 @@ def superseded(run_dir: str | Path, recipe: dict, source: str | None = None) -> 
     if not path.is_file():
         return None
     try:
-        changes = resume_conflicts(path, load_checkpoint(path), validate(recipe, source)[2])
-    except CheckpointError:
+        state = load_checkpoint(path, mmap=True)
+        resolved = validate(recipe, source)[2]
+        changes = resume_conflicts(path, state, resolved)
+    except (DDPError, OSError):
         return None
-    return describe_changes(changes) if changes else None
+    if changes:
+        return describe_changes(changes)
+    budget, step = resolved.get("train", {}).get("max_steps"), state.get("step")
+    if isinstance(budget, int) and isinstance(step, int) and step > budget:
+        return f"train.max_steps: {budget}, below the checkpoint's step {step}"
+    return None
 
 
 def set_aside(run_dir: str | Path) -> Path:
@@ -47,3 +56,21 @@ def set_aside(run_dir: str | Path) -> Path:
         target = run_dir.with_name(f"{run_dir.name}.superseded-{stamp}-{n}")
     run_dir.rename(target)
     return target
+
+
+def set_aside_if_superseded(run_dir: str | Path, recipe: dict, source: str | None = None) -> tuple[str, Path] | None:
+    """Set ``run_dir`` aside if its checkpoint is :func:`superseded`; returns (why, where it went) or None.
+    Checked and renamed under the folder's run lock: while another process trains there nothing moves
+    (its ``ddp train`` keeps the folder, and this run's training then reports the busy folder)."""
+    from ddp.run_dir import RunDirBusy, RunLock
+    from ddp.train import LAST
+
+    run_dir = Path(run_dir)
+    if not (run_dir / LAST).is_file():
+        return None
+    try:
+        with RunLock(run_dir):
+            why = superseded(run_dir, recipe, source)  # again under the lock: the folder may have changed
+            return (why, set_aside(run_dir)) if why else None
+    except RunDirBusy:
+        return None
