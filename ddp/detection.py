@@ -160,6 +160,10 @@ SCORE_VARIANTS: dict[str, dict] = {
     "point_newest_per_chunk_q90": {"dims": "point", "frames": "newest", "per_chunk": True, "chunk_quantile": 0.9},
     "point_newest_per_chunk_w2_q90": {"dims": "point", "frames": "newest", "per_chunk": True, "window": 2,
                                       "chunk_quantile": 0.9},
+    # each chunk scaled by its own ID 90 % quantile, no neighbours pooled (an ID peak at the grasp does not
+    # raise the scale of the chunk before it; coffee-pull: 9/20 on time where the default flags 0)
+    "point_newest_per_chunk_w0_q90": {"dims": "point", "frames": "newest", "per_chunk": True, "window": 0,
+                                      "chunk_quantile": 0.9},
     "whitened": {"whiten": True},
     "per_chunk": {"per_chunk": True},
     "whitened_per_chunk": {"whiten": True, "per_chunk": True},
