@@ -1,0 +1,63 @@
+"""How well a trained policy reproduces its own training actions: a check that needs no simulator run.
+
+For each checkpoint, the policy samples action chunks for N windows drawn from the recipe's demonstrations
+(the observation steps it conditions on) and compares them with the demonstrated chunk: the mean squared
+error, against the demonstrated actions' variance across windows (what always predicting the mean action
+would score). A policy that learned its demos scores far under the variance; one near it has learned
+nothing usable, whatever its training loss says (e.g. FlowPolicy's consistency objective on Adroit door
+after 3000 steps). Actions are in the dataset's units.
+
+    python scripts/policy_fit.py runs/suites/adroit_cpu/door__dp3__seed0/last.pt \\
+        runs/suites/adroit_cpu/door__flowpolicy__seed0/last.pt --windows 64
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+def fit(checkpoint: str, windows: int, seed: int) -> dict:
+    import torch
+
+    from ddp.checkpoint import load_checkpoint, stored_recipe
+    from ddp.data.sequence import SequenceDataset
+    from ddp.experiment import Experiment
+
+    # the recipe stored in the checkpoint; its plugin modules are not imported (as ddp eval without --trust-plugins)
+    exp = Experiment(stored_recipe(checkpoint, load_checkpoint(checkpoint, mmap=True)), checkpoint, trust_plugins=False)
+    exp.load_checkpoint(checkpoint)
+    pol = exp.recipe.policy
+    data = SequenceDataset(exp.episodes(), pol.horizon, pad_before=pol.obs_steps - 1,
+                           pad_after=pol.action_steps - 1, keys=["point_cloud", "agent_pos", "action"])
+    picks = torch.randint(0, len(data), (windows,), generator=torch.Generator().manual_seed(seed))
+    batch = torch.stack([data[int(i)] for i in picks])
+    obs = batch[:, : pol.obs_steps].select("point_cloud", "agent_pos")
+    obs.batch_size = [windows]
+    torch.manual_seed(seed)
+    with torch.no_grad():
+        predicted = exp.model(obs)["action_chunk"]
+    demo = batch["action"]
+    return {"mse": float(((predicted - demo) ** 2).mean()), "variance": float(demo.var(0).mean()),
+            "horizon": pol.horizon, "action_dim": demo.shape[-1]}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("checkpoints", nargs="+", help="last.pt files written by ddp train")
+    parser.add_argument("--windows", type=int, default=64, help="demonstration windows sampled")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    print("| checkpoint | horizon x action dims | MSE to the demos | their variance | ratio |")
+    print("|---|---|---|---|---|")
+    for path in args.checkpoints:
+        r = fit(path, args.windows, args.seed)
+        print(f"| {path} | {r['horizon']} x {r['action_dim']} | {r['mse']:.3g} | {r['variance']:.3g} | "
+              f"{r['mse'] / r['variance']:.3g} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
