@@ -199,6 +199,7 @@ def cmd_detect(args) -> int:
 
 def cmd_suite(args) -> int:
     from ddp.suite import SuiteRunsFailed, load_suite, run_suite, select, write_suite_report
+    from ddp.suite.reevaluate import plan_reevaluation
     from ddp.suite.store import ResultStore
     from ddp.suite.superseded import superseded
 
@@ -210,13 +211,24 @@ def cmd_suite(args) -> int:
         raise DDPError(f"--seeds takes comma-separated integers, got {args.seeds!r}") from None
     chosen = select(suite, tasks=args.tasks.split(",") if args.tasks else None,
                     methods=args.methods.split(",") if args.methods else None, seeds=seeds)
+    reevaluate = [p for p in args.reevaluate.split(",") if p] if args.reevaluate else None
+    if reevaluate:
+        from ddp.protocols.base import check_protocols
+
+        check_protocols(reevaluate, source="--reevaluate")
     if args.dry_run:
         store, counts = ResultStore(suite.results_dir), {"done": 0, "stale": 0, "missing": 0}
+        again = {r.run_id for r in plan_reevaluation(store, chosen.runs, reevaluate)} if reevaluate else set()
         resumes = retrains = 0
         for run in chosen.runs:
             state = store.status(run)
             counts[state] += 1
             out = run.recipe["train"]["output_dir"]
+            if run.run_id in again:
+                protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
+                print(f"{run.run_id}: stale, re-evaluates {', '.join(reevaluate)} from {out}/last.pt (keeps the "
+                      f"others); {run.recipe['name']}, protocols {protocols}, -> {out}")
+                continue
             found = state != "done" and (Path(out) / "last.pt").is_file()
             changed = superseded(out, run.recipe, args.suite) if found else None
             resumes += found and not changed
@@ -230,15 +242,15 @@ def cmd_suite(args) -> int:
             protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
             print(f"{run.run_id}: {label}; {run.recipe['name']}, protocols {protocols}, -> {out}")
         print(f"{len(chosen.runs)} runs: {counts['done']} done, {counts['stale'] + counts['missing']} to run "
-              f"({counts['stale']} stale, {resumes} resuming a checkpoint, {retrains} setting one aside); "
-              f"results in {suite.results_dir}")
+              f"({counts['stale']} stale, {resumes} resuming a checkpoint, {retrains} setting one aside"
+              + (f", {len(again)} re-evaluating" if reevaluate else "") + f"); results in {suite.results_dir}")
         return 0
     failed = None
     if not args.report:
         ray = (args.ray or True) if args.ray is not None else False
         try:
             run_suite(chosen, workers=args.workers, threads=args.threads, progress=not args.quiet, ray=ray,
-                      gpus_per_run=args.gpus_per_run)
+                      gpus_per_run=args.gpus_per_run, reevaluate=reevaluate)
         except SuiteRunsFailed as err:  # the table still shows what finished
             failed = err
     done = ResultStore(suite.results_dir).all(suite.runs)  # the table covers every stored run
@@ -409,6 +421,10 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", help="comma-separated seeds to run (default: all); runs go seed by seed")
     p.add_argument("--dry-run", action="store_true",
                    help="list the runs, which are stored, stale or to run (and which resume a checkpoint), and exit")
+    p.add_argument("--reevaluate", metavar="PROTOCOLS",
+                   help="bring stale runs up to date by re-evaluating only these comma-separated protocols from each "
+                        "run's checkpoint, keeping the others (for a change in how runs are evaluated, e.g. the "
+                        "detector: --reevaluate id_ddp,ood_ddp); missing runs still run in full")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_suite)
 

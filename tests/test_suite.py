@@ -246,6 +246,54 @@ def test_a_checkpoint_for_another_recipe_is_set_aside_and_the_run_trains_afresh(
     assert "cannot continue this recipe (train.lr: 0.002 -> 0.003)" in log and log.count("started") == 1
 
 
+def test_reevaluate_updates_the_named_protocols_of_stale_runs_from_their_checkpoints(suite_file, capsys):
+    """A change in how runs are evaluated: --reevaluate re-runs only the named protocols from each stale run's
+    checkpoint, keeps the others, records what was redone, and refuses a run it cannot bring up to date."""
+    from ddp.cli import main
+    from ddp.errors import DDPError
+
+    def part():
+        return select(load_suite(suite_file), tasks=["near"], methods=["ddp"], seeds=[0])
+
+    def edit(**changes):
+        data = yaml.safe_load(suite_file.read_text())
+        data.update(changes)
+        suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
+
+    run_suite(part(), progress=False, echo=lambda *_: None)
+    store = ResultStore(part().results_dir)
+    before = store.load(part().runs[0])
+    before["protocols"]["ood_base"]["seconds"] = 1234.5  # a marker: a kept protocol keeps its stored values
+    store.save(part().runs[0], {k: v for k, v in before.items() if k not in ("format", "complete", "recipe_hash")})
+
+    edit(set=["train.lr=0.002", "eval.max_steps=12"])  # evaluated differently: every result is stale
+    run = part().runs[0]
+    assert store.status(run) == "stale"
+    assert main(["suite", str(suite_file), "--dry-run", "--tasks", "near", "--methods", "ddp", "--seeds", "0",
+                 "--reevaluate", "id"]) == 0
+    assert capsys.readouterr().out.startswith(f"{run.run_id}: stale, re-evaluates id from ")
+    assert main(["suite", str(suite_file), "--reevaluate", "idd"]) == 2
+    assert "unknown protocol 'idd'; did you mean 'id'" in capsys.readouterr().err
+    with pytest.raises(DDPError, match="near__ddp__seed0 does not evaluate ood_ddp"):
+        run_suite(part(), progress=False, echo=lambda *_: None, reevaluate=["ood_ddp"])
+
+    run_suite(part(), progress=False, echo=lambda *_: None, reevaluate=["id"])
+    after = store.load(run)
+    assert after is not None and after["recipe_hash"] == run.recipe_hash  # stored under the current recipe
+    assert after["protocols"]["ood_base"] == before["protocols"]["ood_base"]  # kept as stored
+    assert after["protocols"]["id"]["seconds"] != before["protocols"]["id"]["seconds"]  # evaluated again
+    record = after["reevaluated"][-1]
+    assert record["protocols"] == ["id"] and "eval.max_steps" in record["changed_since_training"]
+    assert record["previous"] == {"id": before["protocols"]["id"]["success_rate"]}
+    assert after["train"] == before["train"]
+    log = (suite_file.parent / run.recipe["train"]["output_dir"] / "log.txt").read_text()
+    assert log.count("re-evaluating id") == 1 and log.count("started") == 1  # trained once
+
+    edit(set=["train.lr=0.003", "eval.max_steps=12"])  # what it trains changed: re-evaluating is not enough
+    with pytest.raises(DDPError, match="checkpoint of near__ddp__seed0 cannot serve this recipe"):
+        run_suite(part(), progress=False, echo=lambda *_: None, reevaluate=["id"])
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_failing_run_is_reported_and_the_others_finish(suite_file, workers):
     """One run's checkpoint is corrupt: its traceback goes to its log.txt, the suite prints one line,

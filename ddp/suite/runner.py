@@ -108,6 +108,8 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
         torch.set_num_threads(threads)
     run_dir = Path(run.recipe["train"]["output_dir"])
     t0 = time.perf_counter()
+    if run.reevaluate:
+        return _reevaluate_run(run, run_dir, t0)
     moved = set_aside_if_superseded(run_dir, run.recipe, run.run_id)  # before this run's log opens there
     run_dir.mkdir(parents=True, exist_ok=True)
     with open(run_dir / "log.txt", "a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
@@ -138,6 +140,33 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
         "wall_seconds": time.perf_counter() - t0,
         "code": code_version(),
     }
+
+
+def _reevaluate_run(run: RunSpec, run_dir: Path, t0: float) -> dict:
+    """``run.reevaluate``'s protocols from the run's checkpoint (see :mod:`ddp.suite.reevaluate`); returns them
+    with the recipe keys changed since training (``changed``), for the suite to merge into the stored result."""
+    from ddp.checkpoint import load_checkpoint, stored_recipe
+    from ddp.experiment import build
+    from ddp.recipe import recipe_changes
+    from ddp.train import LAST
+
+    ckpt = run_dir / LAST
+    with open(run_dir / "log.txt", "a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+        print(f"== {run.run_id} re-evaluating {', '.join(run.reevaluate)} from {ckpt}", flush=True)
+        try:
+            exp = build(run.recipe)
+            trained_with = stored_recipe(ckpt, load_checkpoint(ckpt, mmap=True))
+            exp.load_checkpoint(ckpt)
+            report = exp.evaluate(list(run.reevaluate), episodes=run.episodes, progress=False,
+                                  output_dir=str(run_dir / "eval_reevaluated"))
+        except BaseException:
+            traceback.print_exc()
+            print(f"== {run.run_id} failed", flush=True)
+            raise
+        print(f"== {run.run_id} re-evaluated", flush=True)
+    return {"run_id": run.run_id, "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
+            "changed": sorted(recipe_changes(trained_with, exp.resolved)),
+            "wall_seconds": time.perf_counter() - t0, "code": code_version()}
 
 
 _STOP = None  # in a pool worker: the suite's stop event (set when the suite is interrupted)
@@ -174,16 +203,25 @@ def _fmt(seconds: float) -> str:
 
 
 def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None, progress: bool = True,
-              echo=print, ray: bool | str = False, gpus_per_run: float = 0.0) -> dict[str, dict]:
-    """Run what the store does not hold yet; return run_id -> result for every finished run."""
+              echo=print, ray: bool | str = False, gpus_per_run: float = 0.0,
+              reevaluate: list[str] | None = None) -> dict[str, dict]:
+    """Run what the store does not hold yet; return run_id -> result for every finished run. With
+    ``reevaluate``, stale runs only re-evaluate those protocols from their checkpoints (see
+    :mod:`ddp.suite.reevaluate`); missing runs still run in full."""
     from tqdm import tqdm
+
+    from ddp.suite.reevaluate import merge_reevaluation, plan_reevaluation
 
     store = ResultStore(suite.results_dir)
     done = store.all(suite.runs)
     todo = [r for r in suite.runs if r.run_id not in done]
+    if reevaluate:
+        again = {r.run_id: r for r in plan_reevaluation(store, todo, reevaluate)}
+        todo = [again.get(r.run_id, r) for r in todo]
     how = "Ray tasks" if ray else ("sequential" if workers == 1 else f"{workers} worker processes")
+    redo = sum(1 for r in todo if r.reevaluate)
     echo(f"suite {suite.name}: {len(suite.runs)} runs, {len(done)} already in {suite.results_dir}, "
-         f"{len(todo)} to run ({how})")
+         f"{len(todo)} to run ({how}" + (f"; {redo} re-evaluating {', '.join(reevaluate)}" if redo else "") + ")")
     if not todo:
         return done
     bar = tqdm(total=len(suite.runs), initial=len(done), desc=f"suite {suite.name}", unit="run", disable=not progress)
@@ -192,10 +230,13 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
     failed: dict[str, str] = {}
 
     def finished(run: RunSpec, result: dict) -> None:
+        rates = ", ".join(f"{p} {100 * v['success_rate']:.0f} %" for p, v in result["protocols"].items())
+        took = _fmt(result["wall_seconds"])
+        if run.reevaluate:
+            result = merge_reevaluation(store, run, result)
         store.save(run, result)
         done[run.run_id] = result
-        rates = ", ".join(f"{p} {100 * v['success_rate']:.0f} %" for p, v in result["protocols"].items())
-        say(f"finished {run.run_id} in {_fmt(result['wall_seconds'])}: {rates}")
+        say(f"{'re-evaluated' if run.reevaluate else 'finished'} {run.run_id} in {took}: {rates}")
         bar.update(1)
 
     def failure(run: RunSpec, err: Exception) -> None:

@@ -56,6 +56,8 @@ class RunSpec:
     recipe: dict  # the full recipe (bases merged, overlay and overrides applied)
     protocols: tuple[str, ...] | None
     episodes: int | None
+    #: re-evaluate only these protocols from the run's checkpoint (``ddp suite --reevaluate``); not its identity
+    reevaluate: tuple[str, ...] | None = None
 
     @property
     def run_id(self) -> str:

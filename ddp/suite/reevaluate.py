@@ -1,0 +1,80 @@
+"""Bringing stale results up to date by re-evaluating some protocols from each run's checkpoint.
+
+A suite file that changes only how runs are evaluated (a detector setting, a controller option) makes every
+affected result stale, and ``ddp suite`` would train and evaluate those runs again. ``ddp suite SUITE
+--reevaluate id_ddp,ood_ddp`` instead loads each stale run's ``last.pt``, evaluates only the named protocols,
+keeps the stored values of the others and stores the result under the run's current recipe, with a
+``reevaluated`` record (protocols, the recipe keys that changed since training, the previous success rates,
+the code version, seconds). Which protocols a change touches is the caller's call (the detector's settings
+reach ``id_ddp`` and ``ood_ddp`` only; ``ood_ddp_oracle`` and the imagination protocols use none of them).
+
+Every stale run is checked before any starts, and one that cannot be brought up to date this way stops the
+command with a one-line reason: no checkpoint, one that cannot continue the recipe (what it trains on
+changed), another episode count, a stored result lacking a protocol of the current list that is not
+re-evaluated, or a named protocol the run does not evaluate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from ddp.errors import DDPError
+from ddp.suite.spec import RunSpec
+from ddp.suite.store import ResultStore
+
+__all__ = ["plan_reevaluation", "merge_reevaluation"]
+
+
+def _protocols(run: RunSpec) -> list[str]:
+    if run.protocols is not None:
+        return list(run.protocols)
+    return list(run.recipe.get("eval", {}).get("protocols") or [])
+
+
+def plan_reevaluation(store: ResultStore, runs: list[RunSpec], protocols: list[str]) -> list[RunSpec]:
+    """The stale runs among ``runs``, each to re-evaluate ``protocols`` (``RunSpec.reevaluate``); raises a
+    one-line DDPError naming the first run that cannot be brought up to date this way."""
+    from ddp.suite.superseded import superseded
+    from ddp.train import LAST
+
+    out = []
+    for run in runs:
+        if store.status(run) != "stale":
+            continue
+        stored = store._complete(run)
+        listed = _protocols(run)
+        unknown = [p for p in protocols if p not in listed]
+        if unknown:
+            raise DDPError(f"--reevaluate: {run.run_id} does not evaluate {', '.join(unknown)} "
+                           f"(its protocols: {', '.join(listed)})")
+        lacking = [p for p in listed if p not in stored.get("protocols", {}) and p not in protocols]
+        if lacking:
+            raise DDPError(f"--reevaluate: the stored result of {run.run_id} lacks {', '.join(lacking)}; "
+                           "add it to --reevaluate")
+        if run.episodes is not None and stored.get("episodes") != run.episodes:
+            raise DDPError(f"--reevaluate: {run.run_id} was evaluated on {stored.get('episodes')} episodes per "
+                           f"protocol, the suite now asks {run.episodes}; run it again instead")
+        run_dir = Path(run.recipe["train"]["output_dir"])
+        if not (run_dir / LAST).is_file():
+            raise DDPError(f"--reevaluate: {run.run_id} has no checkpoint ({run_dir / LAST})")
+        changed = superseded(run_dir, run.recipe, run.run_id)
+        if changed:
+            raise DDPError(f"--reevaluate: the checkpoint of {run.run_id} cannot serve this recipe ({changed}); "
+                           "run it again instead")
+        out.append(dataclasses.replace(run, reevaluate=tuple(protocols)))
+    return out
+
+
+def merge_reevaluation(store: ResultStore, run: RunSpec, result: dict) -> dict:
+    """The stored (stale) result of ``run`` with ``result``'s re-evaluated protocols in place and a record of
+    what was redone; what ``ResultStore.save`` then stores under the run's current recipe."""
+    data = {k: v for k, v in store._complete(run).items() if k not in ("format", "complete", "recipe_hash")}
+    previous = {p: data["protocols"].get(p, {}).get("success_rate") for p in result["protocols"]}
+    data["protocols"] = {p: result["protocols"].get(p, data["protocols"].get(p)) for p in _protocols(run)}
+    history = data.get("reevaluated") or []
+    history = [history] if isinstance(history, dict) else list(history)
+    history.append({"protocols": list(result["protocols"]), "changed_since_training": result["changed"],
+                    "previous": previous, "code": result["code"], "seconds": result["wall_seconds"]})
+    data["reevaluated"] = history
+    return data
