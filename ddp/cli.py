@@ -211,10 +211,15 @@ def cmd_suite(args) -> int:
         raise DDPError(f"--seeds takes comma-separated integers, got {args.seeds!r}") from None
     chosen = select(suite, tasks=args.tasks.split(",") if args.tasks else None,
                     methods=args.methods.split(",") if args.methods else None, seeds=seeds)
-    reevaluate = [p for p in args.reevaluate.split(",") if p] if args.reevaluate else None
-    if reevaluate:
+    reevaluate = None
+    if args.reevaluate is not None:
         from ddp.protocols.base import check_protocols
 
+        reevaluate = list(dict.fromkeys(p.strip() for p in args.reevaluate.split(",") if p.strip()))
+        if not reevaluate:
+            raise DDPError("--reevaluate needs at least one protocol name, e.g. --reevaluate id_ddp,ood_ddp")
+        if args.report:
+            raise DDPError("--reevaluate runs protocols; --report only aggregates what is stored")
         check_protocols(reevaluate, source="--reevaluate")
     if args.dry_run:
         store, counts = ResultStore(suite.results_dir), {"done": 0, "stale": 0, "missing": 0}

@@ -255,10 +255,13 @@ def test_reevaluate_updates_the_named_protocols_of_stale_runs_from_their_checkpo
     def part():
         return select(load_suite(suite_file), tasks=["near"], methods=["ddp"], seeds=[0])
 
-    def edit(**changes):
+    def edit(*settings):
         data = yaml.safe_load(suite_file.read_text())
-        data.update(changes)
+        data["set"] = ["train.lr=0.002", *settings]
         suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
+
+    def stored(run):
+        return {k: v for k, v in store._complete(run).items() if k not in ("format", "complete", "recipe_hash")}
 
     run_suite(part(), progress=False, echo=lambda *_: None)
     store = ResultStore(part().results_dir)
@@ -266,14 +269,15 @@ def test_reevaluate_updates_the_named_protocols_of_stale_runs_from_their_checkpo
     before["protocols"]["ood_base"]["seconds"] = 1234.5  # a marker: a kept protocol keeps its stored values
     store.save(part().runs[0], {k: v for k, v in before.items() if k not in ("format", "complete", "recipe_hash")})
 
-    edit(set=["train.lr=0.002", "eval.max_steps=12"])  # evaluated differently: every result is stale
+    edit("controller.safe_lift=0.01")  # evaluated differently: the result is stale
     run = part().runs[0]
     assert store.status(run) == "stale"
-    assert main(["suite", str(suite_file), "--dry-run", "--tasks", "near", "--methods", "ddp", "--seeds", "0",
-                 "--reevaluate", "id"]) == 0
+    dry = ["suite", str(suite_file), "--dry-run", "--tasks", "near", "--methods", "ddp", "--seeds", "0"]
+    assert main([*dry, "--reevaluate", " id"]) == 0
     assert capsys.readouterr().out.startswith(f"{run.run_id}: stale, re-evaluates id from ")
-    assert main(["suite", str(suite_file), "--reevaluate", "idd"]) == 2
-    assert "unknown protocol 'idd'; did you mean 'id'" in capsys.readouterr().err
+    for bad, message in (("idd", "unknown protocol 'idd'; did you mean 'id'"), (",", "at least one protocol")):
+        assert main([*dry, "--reevaluate", bad]) == 2
+        assert message in capsys.readouterr().err
     with pytest.raises(DDPError, match="near__ddp__seed0 does not evaluate ood_ddp"):
         run_suite(part(), progress=False, echo=lambda *_: None, reevaluate=["ood_ddp"])
 
@@ -283,15 +287,28 @@ def test_reevaluate_updates_the_named_protocols_of_stale_runs_from_their_checkpo
     assert after["protocols"]["ood_base"] == before["protocols"]["ood_base"]  # kept as stored
     assert after["protocols"]["id"]["seconds"] != before["protocols"]["id"]["seconds"]  # evaluated again
     record = after["reevaluated"][-1]
-    assert record["protocols"] == ["id"] and "eval.max_steps" in record["changed_since_training"]
+    assert record["protocols"] == ["id"] and "controller.safe_lift" in record["changed_since_training"]
     assert record["previous"] == {"id": before["protocols"]["id"]["success_rate"]}
     assert after["train"] == before["train"]
     log = (suite_file.parent / run.recipe["train"]["output_dir"] / "log.txt").read_text()
     assert log.count("re-evaluating id") == 1 and log.count("started") == 1  # trained once
 
-    edit(set=["train.lr=0.003", "eval.max_steps=12"])  # what it trains changed: re-evaluating is not enough
-    with pytest.raises(DDPError, match="checkpoint of near__ddp__seed0 cannot serve this recipe"):
+    edit("controller.safe_lift=0.02")  # a second change: the history grows
+    run_suite(part(), progress=False, echo=lambda *_: None, reevaluate=["id", "ood_base"])
+    assert [r["protocols"] for r in store.load(part().runs[0])["reevaluated"]] == [["id"], ["id", "ood_base"]]
+
+    result = stored(part().runs[0])  # as if the result came from an earlier checkpoint of this run
+    store.save(part().runs[0], {**result, "train": {**result["train"], "steps": 1}})
+    edit("controller.safe_lift=0.03")
+    with pytest.raises(DDPError, match="at step 2, its stored result at 1: not the model the result came from"):
         run_suite(part(), progress=False, echo=lambda *_: None, reevaluate=["id"])
+    for settings, message in ((["train.lr=0.003"], "cannot serve this recipe .train.lr: 0.002 -> 0.003"),
+                              (["train.lr=0.002", "train.max_steps=3"], "cannot serve this recipe .train.max_steps changed")):
+        data = yaml.safe_load(suite_file.read_text())
+        data["set"] = settings
+        suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
+        with pytest.raises(DDPError, match=message):
+            run_suite(part(), progress=False, echo=lambda *_: None, reevaluate=["id"])
 
 
 @pytest.mark.parametrize("workers", [1, 2])

@@ -26,42 +26,67 @@ from ddp.suite.store import ResultStore
 __all__ = ["plan_reevaluation", "merge_reevaluation"]
 
 
-def _protocols(run: RunSpec) -> list[str]:
+#: train settings that do not change the weights a checkpoint holds (any other train key: train again)
+OPERATIONAL = ("num_threads", "logger", "device", "output_dir", "compile", "log_every_steps",
+               "checkpoint_every_epochs")
+
+
+def _resolved(run: RunSpec) -> dict:
+    from ddp.schema import validate
+
+    return validate(run.recipe, run.run_id)[2]
+
+
+def _protocols(run: RunSpec, resolved: dict | None = None) -> list[str]:
     if run.protocols is not None:
         return list(run.protocols)
-    return list(run.recipe.get("eval", {}).get("protocols") or [])
+    return list((resolved or _resolved(run))["eval"]["protocols"])
 
 
 def plan_reevaluation(store: ResultStore, runs: list[RunSpec], protocols: list[str]) -> list[RunSpec]:
     """The stale runs among ``runs``, each to re-evaluate ``protocols`` (``RunSpec.reevaluate``); raises a
     one-line DDPError naming the first run that cannot be brought up to date this way."""
+    from ddp.checkpoint import load_checkpoint, stored_recipe
+    from ddp.recipe import recipe_changes
     from ddp.suite.superseded import superseded
     from ddp.train import LAST
 
+    if not protocols:
+        raise DDPError("--reevaluate needs at least one protocol name")
     out = []
     for run in runs:
         if store.status(run) != "stale":
             continue
-        stored = store._complete(run)
-        listed = _protocols(run)
+        stored, resolved = store._complete(run), _resolved(run)
+        listed = _protocols(run, resolved)
         unknown = [p for p in protocols if p not in listed]
         if unknown:
-            raise DDPError(f"--reevaluate: {run.run_id} does not evaluate {', '.join(unknown)} "
-                           f"(its protocols: {', '.join(listed)})")
+            raise DDPError(f"--reevaluate: {run.run_id} does not evaluate {', '.join(unknown)} (its protocols: "
+                           f"{', '.join(listed)}); choose the runs with --tasks / --methods / --seeds")
         lacking = [p for p in listed if p not in stored.get("protocols", {}) and p not in protocols]
         if lacking:
             raise DDPError(f"--reevaluate: the stored result of {run.run_id} lacks {', '.join(lacking)}; "
                            "add it to --reevaluate")
-        if run.episodes is not None and stored.get("episodes") != run.episodes:
+        episodes = run.episodes if run.episodes is not None else resolved["eval"]["episodes"]
+        if stored.get("episodes") != episodes:
             raise DDPError(f"--reevaluate: {run.run_id} was evaluated on {stored.get('episodes')} episodes per "
-                           f"protocol, the suite now asks {run.episodes}; run it again instead")
+                           f"protocol, the suite now asks {episodes}; run it again instead")
         run_dir = Path(run.recipe["train"]["output_dir"])
-        if not (run_dir / LAST).is_file():
-            raise DDPError(f"--reevaluate: {run.run_id} has no checkpoint ({run_dir / LAST})")
+        ckpt = run_dir / LAST
+        if not ckpt.is_file():
+            raise DDPError(f"--reevaluate: {run.run_id} has no checkpoint ({ckpt})")
         changed = superseded(run_dir, run.recipe, run.run_id)
-        if changed:
-            raise DDPError(f"--reevaluate: the checkpoint of {run.run_id} cannot serve this recipe ({changed}); "
-                           "run it again instead")
+        state = load_checkpoint(ckpt, mmap=True)
+        trained = [k for k in recipe_changes(stored_recipe(ckpt, state), resolved)
+                   if k.startswith("train.") and k.split(".")[1] not in OPERATIONAL]
+        if changed or trained:
+            raise DDPError(f"--reevaluate: the checkpoint of {run.run_id} cannot serve this recipe "
+                           f"({changed or ', '.join(trained) + ' changed'}); run it again instead")
+        # the checkpoint must be the one the stored result was evaluated on (not a later, resumed training)
+        steps = (stored.get("train") or {}).get("steps")
+        if state.get("step") != steps:
+            raise DDPError(f"--reevaluate: the checkpoint of {run.run_id} is at step {state.get('step')}, its "
+                           f"stored result at {steps}: not the model the result came from; run it again instead")
         out.append(dataclasses.replace(run, reevaluate=tuple(protocols)))
     return out
 
@@ -71,7 +96,8 @@ def merge_reevaluation(store: ResultStore, run: RunSpec, result: dict) -> dict:
     what was redone; what ``ResultStore.save`` then stores under the run's current recipe."""
     data = {k: v for k, v in store._complete(run).items() if k not in ("format", "complete", "recipe_hash")}
     previous = {p: data["protocols"].get(p, {}).get("success_rate") for p in result["protocols"]}
-    data["protocols"] = {p: result["protocols"].get(p, data["protocols"].get(p)) for p in _protocols(run)}
+    data["protocols"] = {p: result["protocols"].get(p, data["protocols"].get(p)) for p in _protocols(run)
+                         if p in result["protocols"] or p in data["protocols"]}
     history = data.get("reevaluated") or []
     history = [history] if isinstance(history, dict) else list(history)
     history.append({"protocols": list(result["protocols"]), "changed_since_training": result["changed"],

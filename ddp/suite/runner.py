@@ -150,8 +150,11 @@ def _reevaluate_run(run: RunSpec, run_dir: Path, t0: float) -> dict:
     from ddp.recipe import recipe_changes
     from ddp.train import LAST
 
+    from ddp.run_dir import RunLock
+
     ckpt = run_dir / LAST
-    with open(run_dir / "log.txt", "a") as log, contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
+    with RunLock(run_dir), open(run_dir / "log.txt", "a") as log, contextlib.redirect_stdout(log), \
+            contextlib.redirect_stderr(log):
         print(f"== {run.run_id} re-evaluating {', '.join(run.reevaluate)} from {ckpt}", flush=True)
         try:
             exp = build(run.recipe)
