@@ -229,10 +229,11 @@ def cmd_suite(args) -> int:
             state = store.status(run)
             counts[state] += 1
             out = run.recipe["train"]["output_dir"]
+            protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
+            what = f"{run.recipe['name']}, protocols {protocols}, -> {out}"
             if run.run_id in again:
-                protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
                 print(f"{run.run_id}: stale, re-evaluates {', '.join(reevaluate)} from {out}/last.pt (keeps the "
-                      f"others); {run.recipe['name']}, protocols {protocols}, -> {out}")
+                      f"others); {what}")
                 continue
             found = state != "done" and (Path(out) / "last.pt").is_file()
             changed = superseded(out, run.recipe, args.suite) if found else None
@@ -244,8 +245,7 @@ def cmd_suite(args) -> int:
                           "will be set aside)")
             elif found:
                 label += f", resumes {out}/last.pt"
-            protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
-            print(f"{run.run_id}: {label}; {run.recipe['name']}, protocols {protocols}, -> {out}")
+            print(f"{run.run_id}: {label}; {what}")
         print(f"{len(chosen.runs)} runs: {counts['done']} done, {counts['stale'] + counts['missing']} to run "
               f"({counts['stale']} stale, {resumes} resuming a checkpoint, {retrains} setting one aside"
               + (f", {len(again)} re-evaluating" if reevaluate else "") + f"); results in {suite.results_dir}")

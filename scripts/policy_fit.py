@@ -27,8 +27,9 @@ def fit(checkpoint: str, windows: int, seed: int) -> dict:
     from ddp.experiment import Experiment
 
     # the recipe stored in the checkpoint; its plugin modules are not imported (as ddp eval without --trust-plugins)
-    exp = Experiment(stored_recipe(checkpoint, load_checkpoint(checkpoint, mmap=True)), checkpoint, trust_plugins=False)
-    exp.load_checkpoint(checkpoint)
+    state = load_checkpoint(checkpoint)
+    exp = Experiment(stored_recipe(checkpoint, state), checkpoint, trust_plugins=False)
+    exp.load_checkpoint(checkpoint, state=state)
     pol = exp.recipe.policy
     data = SequenceDataset(exp.episodes(), pol.horizon, pad_before=pol.obs_steps - 1,
                            pad_after=pol.action_steps - 1, keys=["point_cloud", "agent_pos", "action"])

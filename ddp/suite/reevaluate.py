@@ -9,9 +9,10 @@ the code version, seconds). Which protocols a change touches is the caller's cal
 reach ``id_ddp`` and ``ood_ddp`` only; ``ood_ddp_oracle`` and the imagination protocols use none of them).
 
 Every stale run is checked before any starts, and one that cannot be brought up to date this way stops the
-command with a one-line reason: no checkpoint, one that cannot continue the recipe (what it trains on
-changed), another episode count, a stored result lacking a protocol of the current list that is not
-re-evaluated, or a named protocol the run does not evaluate.
+command with a one-line reason: no checkpoint, one that cannot serve the recipe (what it trains on or a
+training setting changed, or it is not at the step its stored result came from), another episode count, a
+stored result lacking a protocol of the current list that is not re-evaluated, or a named protocol the run
+does not evaluate.
 """
 
 from __future__ import annotations
@@ -48,8 +49,7 @@ def plan_reevaluation(store: ResultStore, runs: list[RunSpec], protocols: list[s
     one-line DDPError naming the first run that cannot be brought up to date this way."""
     from ddp.checkpoint import load_checkpoint, stored_recipe
     from ddp.recipe import recipe_changes
-    from ddp.suite.superseded import superseded
-    from ddp.train import LAST
+    from ddp.train import LAST, describe_changes, resume_conflicts
 
     if not protocols:
         raise DDPError("--reevaluate needs at least one protocol name")
@@ -75,13 +75,16 @@ def plan_reevaluation(store: ResultStore, runs: list[RunSpec], protocols: list[s
         ckpt = run_dir / LAST
         if not ckpt.is_file():
             raise DDPError(f"--reevaluate: {run.run_id} has no checkpoint ({ckpt})")
-        changed = superseded(run_dir, run.recipe, run.run_id)
         state = load_checkpoint(ckpt, mmap=True)
+        # what training could not continue from (ddp train's resume rule), and any train setting that shapes
+        # the weights (a raised or lowered step budget included)
+        conflicts = resume_conflicts(ckpt, state, resolved)
         trained = [k for k in recipe_changes(stored_recipe(ckpt, state), resolved)
                    if k.startswith("train.") and k.split(".")[1] not in OPERATIONAL]
-        if changed or trained:
-            raise DDPError(f"--reevaluate: the checkpoint of {run.run_id} cannot serve this recipe "
-                           f"({changed or ', '.join(trained) + ' changed'}); run it again instead")
+        if conflicts or trained:
+            why = describe_changes(conflicts) if conflicts else ", ".join(trained) + " changed"
+            raise DDPError(f"--reevaluate: the checkpoint of {run.run_id} cannot serve this recipe ({why}); "
+                           "run it again instead")
         # the checkpoint must be the one the stored result was evaluated on (not a later, resumed training)
         steps = (stored.get("train") or {}).get("steps")
         if state.get("step") != steps:

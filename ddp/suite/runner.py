@@ -148,9 +148,8 @@ def _reevaluate_run(run: RunSpec, run_dir: Path, t0: float) -> dict:
     from ddp.checkpoint import load_checkpoint, stored_recipe
     from ddp.experiment import build
     from ddp.recipe import recipe_changes
-    from ddp.train import LAST
-
     from ddp.run_dir import RunLock
+    from ddp.train import LAST
 
     ckpt = run_dir / LAST
     with RunLock(run_dir), open(run_dir / "log.txt", "a") as log, contextlib.redirect_stdout(log), \
@@ -158,8 +157,9 @@ def _reevaluate_run(run: RunSpec, run_dir: Path, t0: float) -> dict:
         print(f"== {run.run_id} re-evaluating {', '.join(run.reevaluate)} from {ckpt}", flush=True)
         try:
             exp = build(run.recipe)
-            trained_with = stored_recipe(ckpt, load_checkpoint(ckpt, mmap=True))
-            exp.load_checkpoint(ckpt)
+            state = load_checkpoint(ckpt)
+            trained_with = stored_recipe(ckpt, state)
+            exp.load_checkpoint(ckpt, state=state)
             report = exp.evaluate(list(run.reevaluate), episodes=run.episodes, progress=False,
                                   output_dir=str(run_dir / "eval_reevaluated"))
         except BaseException:
