@@ -154,6 +154,7 @@ class Experiment:
             on_nonfinite=c.on_nonfinite,
             hold=hold,
             num_points=self.recipe.task.num_points,
+            resume_after_recovery=c.resume_after_recovery,
         )
 
     def evaluate(self, protocols=None, **kwargs):

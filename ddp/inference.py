@@ -50,6 +50,8 @@ from ddp.keys import KeyedModule
 from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite
 
 MIN_OFFSET = 1e-6  # metres: smaller tracked offsets mean "did not move"
+#: metres: after a resume_after_recovery, a tracked offset this far from the accepted one is a new displacement
+NEW_DISPLACEMENT = 0.02
 FORECAST_STREAM = 1  # the world model's noise is seeded with seed + FORECAST_STREAM (the policy's with seed)
 
 
@@ -77,6 +79,9 @@ class EnvState:
     recovered: torch.Tensor | None = None  # objects already brought back
     subtask: int = 0
     subtask_start: int = 0
+    # resume_after_recovery: the tracked offsets when the controller returned to reality with displaced
+    # objects no subtask targets left where they are; only a displacement beyond them re-enters OOD
+    accepted: torch.Tensor | None = None
     last_action: torch.Tensor | None = None  # the last finite action emitted (what "hold" repeats)
 
 
@@ -115,6 +120,7 @@ class DDPController(KeyedModule):
         on_nonfinite: str = "raise",
         hold: HoldSpec | None = None,
         num_points: int | None = None,
+        resume_after_recovery: bool = False,
     ):
         super().__init__()
         for kind, part in (("detector", detector), ("tracker", tracker), ("recovery", recovery)):
@@ -141,6 +147,7 @@ class DDPController(KeyedModule):
         self.subtasks = subtasks or [Subtask(target=0, trigger=None)]
         self.imagine = imagine
         self.track = track
+        self.resume_after_recovery = resume_after_recovery
         self._forecast_every_cycle = forecast_every_cycle
         self._async_forecast = async_forecast
         self.forecast_samples = forecast_samples
@@ -194,6 +201,23 @@ class DDPController(KeyedModule):
         if self.recovery is not None and self.recovery.trigger_chunk is not None:
             return ("chunk", self.recovery.trigger_chunk)
         return self.subtasks[s.subtask].trigger if s.subtask < len(self.subtasks) else None
+
+    def _targets_recovered(self, s: EnvState) -> bool:
+        """Every displaced object that some subtask targets has been recovered (displaced objects no subtask
+        targets, e.g. coffee-pull's machine, are scenery the policy may see where they now are)."""
+        if s.displaced is None or s.recovered is None:
+            return False
+        targets = {sub.target for sub in self.subtasks if sub.target is not None}
+        pending = [k for k in targets if k < len(s.displaced) and bool(s.displaced[k]) and not bool(s.recovered[k])]
+        return bool(s.recovered.any()) and not pending
+
+    @staticmethod
+    def _accepted_scene(s: EnvState, offsets: torch.Tensor | None, b: int) -> bool:
+        """The tracker sees nothing displaced beyond what was accepted when the controller resumed reality
+        after a recovery (D_R-I stays high while the scene stays changed; only a new displacement counts)."""
+        if s.accepted is None or offsets is None:
+            return False
+        return bool(((offsets[b] - s.accepted).norm(dim=-1) <= NEW_DISPLACEMENT).all())
 
     def _subtask_ended(self, s: EnvState, obs, chunk: int) -> bool:
         trig = self._trigger(s)
@@ -385,7 +409,8 @@ class DDPController(KeyedModule):
         ood_now = self.detector(td).get(self.detector.key("ood")).reshape(B).tolist()
         ood_now = [bool(o) or not bool(finite[b]) for b, o in enumerate(ood_now)]  # non-finite input: OOD
         for b, s in enumerate(self.states):
-            if not s.ood and ood_now[b] and (self.detector.sticky or s.has_forecast or not finite[b]):
+            if (not s.ood and ood_now[b] and (self.detector.sticky or s.has_forecast or not finite[b])
+                    and not (finite[b] and self._accepted_scene(s, offsets, b))):
                 s.ood = True  # OOD_Mode <- True
                 if not finite[b]:  # a sensor fault, not a displacement: re-check D_R-I once inputs are finite
                     s.recheck_after = chunk_index[b]
@@ -403,6 +428,9 @@ class DDPController(KeyedModule):
                 s.recheck_after = None
                 if not ood_now[b]:
                     s.ood = False  # D_R-I <= tau: return to reality
+                elif self.resume_after_recovery and self._targets_recovered(s):
+                    s.ood = False  # every displaced target is back: reality, with the rest of the scene as it is
+                    s.accepted = offsets[b] if offsets is not None else None
 
         # Keep tracking in OOD mode: an object the tracker could not see when OOD began (zero
         # offset, e.g. hidden behind the arm) joins C_disp once it is seen displaced.

@@ -157,6 +157,7 @@ class ControllerConfig:
     # sampled actions are not finite: "raise" a one-line error, or "hold" (the env's hold action:
     # zero motion, gripper command unchanged). A non-finite action is never emitted either way.
     on_nonfinite: Literal["raise", "hold"] = "raise"
+    resume_after_recovery: bool = False
 
 
 @dataclass

@@ -86,6 +86,48 @@ def test_sticky_detector_returns_to_reality_only_at_the_recheck_after_recovery(t
     assert r["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 1]
 
 
+def test_resume_after_recovery_returns_to_reality_once_every_displaced_target_is_back(tiny_recipe):
+    # the detector still says OOD at the re-check (chunk 5), as D_R-I does where a displaced object no
+    # subtask targets stays where it was moved: with resume_after_recovery the controller returns anyway
+    exp = make_exp(tiny_recipe, resume_after_recovery=True)
+    ctrl = exp.make_controller()
+    ctrl.detector = ScriptedStickyDetector(ood_at={2, 5})
+    r = rollout(exp, ctrl)
+    assert r["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 0, 0, 0]
+    assert not r["ddp", "imagined"][5:].any()
+    assert shifts(r)[2] == DELTA and shifts(r)[4] == [-d for d in DELTA]
+
+    # the detector goes on saying OOD (the scene stays changed): the tracker sees no displacement beyond the
+    # one accepted at the resume, so the controller stays in reality
+    ctrl.detector = ScriptedStickyDetector(ood_at={2, 5, 6, 7})
+    assert rollout(exp, ctrl)["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 0, 0, 0]
+
+    # nothing recovered (the subtask never ends): OOD mode holds, as without the option
+    ctrl = exp.make_controller()
+    ctrl.subtasks[0].trigger = None
+    ctrl.detector = ScriptedStickyDetector(ood_at={2, 5})
+    assert rollout(exp, ctrl)["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 1]
+
+
+def test_targets_recovered_ignores_displaced_objects_no_subtask_targets(tiny_recipe):
+    from ddp.inference import EnvState, Subtask
+
+    ctrl = make_exp(tiny_recipe).make_controller()
+    t, f = True, False
+    state = EnvState(displaced=torch.tensor([t, t]), recovered=torch.tensor([t, f]))
+    ctrl.subtasks = [Subtask(target=0, trigger=None), Subtask(target=None, trigger=None)]
+    assert ctrl._targets_recovered(state)  # object 1 (coffee-pull's machine) is scenery
+    ctrl.subtasks = [Subtask(target=0, trigger=None), Subtask(target=1, trigger=None)]
+    assert not ctrl._targets_recovered(state)  # object 1 is still to be dealt with
+    assert not ctrl._targets_recovered(EnvState(displaced=torch.tensor([t, f]), recovered=torch.tensor([f, f])))
+
+    # after the resume, only a displacement beyond the accepted offsets counts as a new OOD event
+    state.accepted = torch.tensor([[0.0, 0.0, 0.0], [-0.2, 0.0, 0.0]])
+    same, moved = torch.tensor([[[0.0, 0.0, 0.0], [-0.19, 0.0, 0.0]]]), torch.tensor([[[0.0, 0.1, 0.0], [-0.2, 0.0, 0.0]]])
+    assert ctrl._accepted_scene(state, same, 0) and not ctrl._accepted_scene(state, moved, 0)
+    assert not ctrl._accepted_scene(EnvState(), same, 0) and not ctrl._accepted_scene(state, None, 0)
+
+
 # --------------------------------------------------------------------------- 2. per-subtask triggers
 def test_timer_trigger_counts_chunks_from_the_subtask_start(tiny_recipe):
     exp = make_exp(tiny_recipe, subtasks=[
