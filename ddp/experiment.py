@@ -155,6 +155,7 @@ class Experiment:
             hold=hold,
             num_points=self.recipe.task.num_points,
             resume_after_recovery=c.resume_after_recovery,
+            recheck_until_id=c.recheck_until_id,
         )
 
     def evaluate(self, protocols=None, **kwargs):

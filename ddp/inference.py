@@ -121,6 +121,7 @@ class DDPController(KeyedModule):
         hold: HoldSpec | None = None,
         num_points: int | None = None,
         resume_after_recovery: bool = False,
+        recheck_until_id: bool = False,
     ):
         super().__init__()
         for kind, part in (("detector", detector), ("tracker", tracker), ("recovery", recovery)):
@@ -148,6 +149,7 @@ class DDPController(KeyedModule):
         self.imagine = imagine
         self.track = track
         self.resume_after_recovery = resume_after_recovery
+        self.recheck_until_id = recheck_until_id
         self._forecast_every_cycle = forecast_every_cycle
         self._async_forecast = async_forecast
         self.forecast_samples = forecast_samples
@@ -210,6 +212,11 @@ class DDPController(KeyedModule):
         targets = {sub.target for sub in self.subtasks if sub.target is not None}
         pending = [k for k in targets if k < len(s.displaced) and bool(s.displaced[k]) and not bool(s.recovered[k])]
         return bool(s.recovered.any()) and not pending
+
+    @staticmethod
+    def _left_to_recover(s: EnvState) -> bool:
+        """A displaced object is still where the tracking shift followed it (its recovery is to come)."""
+        return s.displaced is not None and bool((s.displaced & ~s.recovered).any())
 
     @staticmethod
     def _accepted_scene(s: EnvState, offsets: torch.Tensor | None, b: int) -> bool:
@@ -431,6 +438,8 @@ class DDPController(KeyedModule):
                 elif self.resume_after_recovery and self._targets_recovered(s):
                     s.ood = False  # every displaced target is back: reality, with the rest of the scene as it is
                     s.accepted = offsets[b] if offsets is not None else None
+                elif self.recheck_until_id and not self._left_to_recover(s):
+                    s.recheck_after = chunk_index[b]  # nothing left to track or recover: re-check next cycle too
 
         # Keep tracking in OOD mode: an object the tracker could not see when OOD began (zero
         # offset, e.g. hidden behind the arm) joins C_disp once it is seen displaced.

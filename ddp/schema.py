@@ -158,6 +158,7 @@ class ControllerConfig:
     # zero motion, gripper command unchanged). A non-finite action is never emitted either way.
     on_nonfinite: Literal["raise", "hold"] = "raise"
     resume_after_recovery: bool = False
+    recheck_until_id: bool = False
 
 
 @dataclass

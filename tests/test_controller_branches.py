@@ -109,6 +109,26 @@ def test_resume_after_recovery_returns_to_reality_once_every_displaced_target_is
     assert rollout(exp, ctrl)["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 1]
 
 
+def test_recheck_until_id_keeps_rechecking_once_nothing_is_left_to_recover(tiny_recipe):
+    # the re-check after the recovery (chunk 5) still says OOD; D_R-I falls below tau from chunk 6. The paper's
+    # single re-check keeps OOD mode to the end; recheck_until_id returns at the first ID verdict
+    exp = make_exp(tiny_recipe)
+    ctrl = exp.make_controller()
+    ctrl.detector = ScriptedStickyDetector(ood_at={2, 5})
+    assert rollout(exp, ctrl)["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 1]
+    ctrl = make_exp(tiny_recipe, recheck_until_id=True).make_controller()
+    ctrl.detector = ScriptedStickyDetector(ood_at={2, 5, 6})
+    assert rollout(exp, ctrl)["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 0]
+
+    # a displaced object not yet recovered (a later subtask's target) stops the repeated re-checks
+    from ddp.inference import EnvState
+
+    t, f = True, False
+    assert ctrl._left_to_recover(EnvState(displaced=torch.tensor([t, t]), recovered=torch.tensor([t, f])))
+    assert not ctrl._left_to_recover(EnvState(displaced=torch.tensor([t, f]), recovered=torch.tensor([t, f])))
+    assert not ctrl._left_to_recover(EnvState())  # no tracker: nothing was ever followed
+
+
 def test_targets_recovered_ignores_displaced_objects_no_subtask_targets(tiny_recipe):
     from ddp.inference import EnvState, Subtask
 
