@@ -437,7 +437,7 @@ class DDPController(KeyedModule):
                     s.ood = False  # D_R-I <= tau: return to reality
                 elif self.resume_after_recovery and self._targets_recovered(s):
                     s.ood = False  # every displaced target is back: reality, with the rest of the scene as it is
-                    s.accepted = offsets[b] if offsets is not None else None
+                    s.accepted = offsets[b].clone() if offsets is not None else None
                 elif self.recheck_until_id and not self._left_to_recover(s):
                     s.recheck_after = chunk_index[b]  # nothing left to track or recover: re-check next cycle too
 

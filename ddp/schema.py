@@ -157,7 +157,11 @@ class ControllerConfig:
     # sampled actions are not finite: "raise" a one-line error, or "hold" (the env's hold action:
     # zero motion, gripper command unchanged). A non-finite action is never emitted either way.
     on_nonfinite: Literal["raise", "hold"] = "raise"
+    # beyond the paper, off by default: back to the real stream once every displaced subtask target has been
+    # recovered, though D_R-I stays high (a displaced object no subtask targets, e.g. coffee-pull's machine)
     resume_after_recovery: bool = False
+    # beyond the paper, off by default: re-check D_R-I on every observation after a failed re-check, while no
+    # displaced object awaits its recovery (the paper re-checks once: a blind camera can end in imagination)
     recheck_until_id: bool = False
 
 
