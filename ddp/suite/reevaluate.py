@@ -27,9 +27,10 @@ from ddp.suite.store import ResultStore
 __all__ = ["plan_reevaluation", "merge_reevaluation"]
 
 
-#: train settings that do not change the weights a checkpoint holds (any other train key: train again)
-OPERATIONAL = ("num_threads", "logger", "device", "output_dir", "compile", "log_every_steps",
-               "checkpoint_every_epochs")
+#: keys ddp train lets a resumed run change (``ddp.train.RESUMABLE``) that still change the weights a finished
+#: run's checkpoint would hold: the step budget. Every other train key is either resumable and operational
+#: (threads, device, logging, ...) or refused by the resume rule itself.
+SCHEDULE = ("train.max_steps", "train.epochs")
 
 
 def _resolved(run: RunSpec) -> dict:
@@ -79,8 +80,7 @@ def plan_reevaluation(store: ResultStore, runs: list[RunSpec], protocols: list[s
         # what training could not continue from (ddp train's resume rule), and any train setting that shapes
         # the weights (a raised or lowered step budget included)
         conflicts = resume_conflicts(ckpt, state, resolved)
-        trained = [k for k in recipe_changes(stored_recipe(ckpt, state), resolved)
-                   if k.startswith("train.") and k.split(".")[1] not in OPERATIONAL]
+        trained = [k for k in recipe_changes(stored_recipe(ckpt, state), resolved) if k in SCHEDULE]
         if conflicts or trained:
             why = describe_changes(conflicts) if conflicts else ", ".join(trained) + " changed"
             raise DDPError(f"--reevaluate: the checkpoint of {run.run_id} cannot serve this recipe ({why}); "
