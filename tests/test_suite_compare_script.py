@@ -1,0 +1,38 @@
+"""scripts/suite_compare.py: per task, a method's stored results before and after a settings change; a run
+stored under the same recipe hash on both sides has not been run again and counts on neither."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+
+from conftest import ROOT
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("suite_compare", ROOT / "scripts" / "suite_compare.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _store(folder, task, recipe_hash, successes, on_time):
+    folder.mkdir(exist_ok=True)
+    run = {"task": task, "method": "ddp", "seed": 0, "complete": True, "recipe_hash": recipe_hash, "protocols": {
+        "ood_ddp": {"successes": successes, "episodes": 20, "detection": {
+            "disturbed_episodes": 20, "clean_episodes": 0, "detected_within_1": on_time, "missed": 20 - on_time}},
+    }}
+    (folder / f"{task}__ddp__seed0.json").write_text(json.dumps(run))
+
+
+def test_rows_and_averages_count_only_runs_made_again(tmp_path, capsys):
+    before, after = tmp_path / "before", tmp_path / "after"
+    _store(before, "push", "h1", 4, 10)
+    _store(after, "push", "h2", 12, 15)  # run again under the new settings
+    _store(before, "sweep", "h1", 2, 5)
+    _store(after, "sweep", "h1", 2, 5)  # still the old result: not compared
+    assert _script().main([str(before), str(after), "--protocols", "ood_ddp"]) == 0
+    out = capsys.readouterr().out
+    assert "| push | 4/20 (10 on time, 10 missed) | 12/20 (15 on time, 5 missed) |" in out
+    assert "| sweep | 2/20 (5 on time, 15 missed) | - |" in out
+    assert "| tasks on both sides | 20.0 % | 60.0 % |" in out
