@@ -2,27 +2,25 @@
 protocol and, for the protocols with a detector, displacements flagged within one chunk, missed, and episodes
 with a false alarm.
 
-    python3 scripts/suite_compare.py results/suites/metaworld_cpu/history/v3_ddp_window2 \\
+    .venv/bin/python scripts/suite_compare.py results/suites/metaworld_cpu/history/v3_ddp_window2 \\
         results/suites/metaworld_cpu --method ddp --seed 0 --protocols id,id_ddp,ood_ddp,ood_ddp_oracle
 
-Reads only the run JSONs ``<task>__<method>__seed<k>.json`` in both folders (what ``ddp suite`` stores);
+Reads only the run JSONs ``<task>__<method>__seed<k>.json`` in both folders (what ``ddp suite`` stores;
+one that is not whole by the store's own rule, ``ddp.suite.store.read_complete``, is left out);
 a task missing on either side, or stored "after" under the same recipe hash as "before" (not run again yet),
 is shown with a dash there and left out of the averages.
 """
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
+
+from ddp.suite.store import read_complete
 
 
 def _runs(folder: Path, method: str, seed: int) -> dict[str, dict]:
-    out = {}
-    for f in sorted(folder.glob(f"*__{method}__seed{seed}.json")):
-        run = json.loads(f.read_text())
-        if run.get("complete", True):
-            out[run["task"]] = run
-    return out
+    runs = (read_complete(f) for f in sorted(folder.glob(f"*__{method}__seed{seed}.json")))
+    return {run["task"]: run for run in runs if run is not None}
 
 
 def _cell(run: dict | None, protocol: str) -> str:
@@ -54,22 +52,20 @@ def main(argv=None) -> int:
     protocols = args.protocols.split(",")
     print("| task | " + " | ".join(f"{p} before | {p} after" for p in protocols) + " |")
     print("|---|" + "---|---|" * len(protocols))
-    totals = {p: [0, 0, 0, 0] for p in protocols}  # successes before, episodes before, after, after
+    both = {p: [] for p in protocols}  # per protocol: (before, after) of each task stored on both sides
     for task in sorted(set(before) | set(after)):
         b, a = before.get(task), after.get(task)
-        cells = []
+        print(f"| {task} | " + " | ".join(f"{_cell(b, p)} | {_cell(a, p)}" for p in protocols) + " |")
         for p in protocols:
-            cells += [_cell(b, p), _cell(a, p)]
             if b is not None and a is not None and p in b["protocols"] and p in a["protocols"]:
-                t = totals[p]
-                t[0] += b["protocols"][p]["successes"]; t[1] += b["protocols"][p]["episodes"]
-                t[2] += a["protocols"][p]["successes"]; t[3] += a["protocols"][p]["episodes"]
-        print(f"| {task} | " + " | ".join(cells) + " |")
-    cells = []
-    for p in protocols:
-        sb, nb, sa, na = totals[p]
-        cells += [f"{100 * sb / nb:.1f} %" if nb else "-", f"{100 * sa / na:.1f} %" if na else "-"]
-    print("| tasks on both sides | " + " | ".join(cells) + " |")
+                both[p].append((b["protocols"][p], a["protocols"][p]))
+
+    def rate(results) -> str:
+        n = sum(r["episodes"] for r in results)
+        return f"{100 * sum(r['successes'] for r in results) / n:.1f} %" if n else "-"
+
+    print("| tasks on both sides | " + " | ".join(
+        f"{rate([b for b, _ in both[p]])} | {rate([a for _, a in both[p]])}" for p in protocols) + " |")
     return 0
 
 

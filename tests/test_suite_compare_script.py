@@ -8,6 +8,8 @@ import json
 
 from conftest import ROOT
 
+from ddp.suite.store import FORMAT
+
 
 def _script():
     spec = importlib.util.spec_from_file_location("suite_compare", ROOT / "scripts" / "suite_compare.py")
@@ -18,10 +20,9 @@ def _script():
 
 def _store(folder, task, recipe_hash, successes, on_time):
     folder.mkdir(exist_ok=True)
-    run = {"task": task, "method": "ddp", "seed": 0, "complete": True, "recipe_hash": recipe_hash, "protocols": {
-        "ood_ddp": {"successes": successes, "episodes": 20, "detection": {
-            "disturbed_episodes": 20, "clean_episodes": 0, "detected_within_1": on_time, "missed": 20 - on_time}},
-    }}
+    detection = {"disturbed_episodes": 20, "clean_episodes": 0, "detected_within_1": on_time, "missed": 20 - on_time}
+    run = {"format": FORMAT, "task": task, "method": "ddp", "seed": 0, "complete": True, "recipe_hash": recipe_hash,
+           "protocols": {"ood_ddp": {"successes": successes, "episodes": 20, "detection": detection}}}
     (folder / f"{task}__ddp__seed0.json").write_text(json.dumps(run))
 
 

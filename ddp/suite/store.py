@@ -16,9 +16,20 @@ from ddp import results_json
 from ddp.atomic_file import atomic_write
 from ddp.suite.spec import RunSpec
 
-__all__ = ["ResultStore"]
+__all__ = ["ResultStore", "read_complete"]
 
 FORMAT = "ddp-suite-run"
+
+
+def read_complete(path: str | Path) -> dict | None:
+    """The run result stored at ``path``, whatever recipe made it, if it is whole (parses, this store's
+    format, marked complete); else None."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    ok = isinstance(data, dict) and data.get("format") == FORMAT and data.get("complete") is True
+    return data if ok else None
 
 
 class ResultStore:
@@ -30,12 +41,7 @@ class ResultStore:
 
     def _complete(self, run: RunSpec) -> dict | None:
         """The stored result of ``run``, whatever recipe made it, if it is whole; else None."""
-        try:
-            data = json.loads(self.path(run).read_text())
-        except (OSError, ValueError):
-            return None
-        ok = isinstance(data, dict) and data.get("format") == FORMAT and data.get("complete") is True
-        return data if ok else None
+        return read_complete(self.path(run))
 
     def load(self, run: RunSpec) -> dict | None:
         """The stored result of ``run`` if it is complete and made for the run's current recipe, else None."""
