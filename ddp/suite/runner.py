@@ -34,6 +34,7 @@ import traceback
 from pathlib import Path
 
 from ddp.errors import DDPError
+from ddp.suite.provenance import code_version, process_code
 from ddp.suite.spec import RunSpec, SuiteSpec
 from ddp.suite.store import ResultStore
 from ddp.suite.superseded import set_aside_if_superseded
@@ -73,29 +74,6 @@ def _summary(protocol: dict) -> dict:
     return out
 
 
-def code_version() -> dict:
-    """Which code produced a result: the package version and, in a git checkout, the commit and whether
-    tracked files differed from it (results outlive sessions; this says what to check out to redo one)."""
-    import subprocess
-
-    import ddp
-
-    out: dict = {"ddp": ddp.__version__}
-    root = Path(ddp.__file__).resolve().parent.parent
-    if not (root / ".git").exists():  # an installed package: a git repository above it is not its source
-        return out
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return out
-    if commit.returncode == 0:
-        out["commit"] = commit.stdout.strip()
-        out["dirty"] = bool(dirty.stdout.strip()) if dirty.returncode == 0 else None
-    return out
-
-
 def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None) -> dict:
     """Train and evaluate one run; its console output goes to its log file. Returns its result."""
     import torch
@@ -104,6 +82,7 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
 
     if cwd is not None:
         os.chdir(cwd)
+    process_code()  # the code this process runs (its first look, if nothing asked before: a Ray worker)
     if threads:
         torch.set_num_threads(threads)
     run_dir = Path(run.recipe["train"]["output_dir"])
@@ -180,6 +159,7 @@ def _init_worker(stop) -> None:
     """A pool worker: Ctrl-C is the suite's to handle (it passes SIGTERM on to a running run)."""
     global _STOP
     _STOP = stop
+    process_code()  # the code this worker imports now is what its runs will run
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
@@ -215,6 +195,7 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
 
     from ddp.suite.reevaluate import merge_reevaluation, plan_reevaluation
 
+    process_code()  # what the runs of this process (sequential) run; pool workers take their own look
     store = ResultStore(suite.results_dir)
     done = store.all(suite.runs)
     todo = [r for r in suite.runs if r.run_id not in done]
