@@ -3,7 +3,7 @@
 A Python process runs the code it imported. A suite's worker imports the package when it starts and may run
 for hours while the checkout moves on (commits, edits), so the checkout at the end of a run is not what ran.
 :func:`code_version` therefore reports the checkout as this process found it on its first call
-(:func:`process_code`, made when a suite or a pool worker starts, and at the start of each run), and says
+(:func:`process_code`, made when a pool worker starts, else at the start of the first run), and says
 when the package's source has changed since: a module imported after that point (many are imported
 lazily) may then be the newer code, and the result mixes the two.
 

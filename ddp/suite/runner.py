@@ -82,7 +82,7 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
 
     if cwd is not None:
         os.chdir(cwd)
-    process_code()  # the code this process runs (its first look, if nothing asked before: a Ray worker)
+    process_code()  # the code this process runs: its first look, unless a pool worker's start took it
     if threads:
         torch.set_num_threads(threads)
     run_dir = Path(run.recipe["train"]["output_dir"])
@@ -195,7 +195,6 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
 
     from ddp.suite.reevaluate import merge_reevaluation, plan_reevaluation
 
-    process_code()  # what the runs of this process (sequential) run; pool workers take their own look
     store = ResultStore(suite.results_dir)
     done = store.all(suite.runs)
     todo = [r for r in suite.runs if r.run_id not in done]
