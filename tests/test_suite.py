@@ -485,6 +485,37 @@ def test_reference_rows_sit_under_their_rows_and_average_the_same_tasks(tmp_path
             load_reference(bad, source="s")
 
 
+def test_report_lists_the_gaps_to_the_reference_within_its_tolerance(tmp_path):
+    """vs_reference.md: each benchmark average against the published one (difference, within the tolerance
+    or not) and the task cells outside the tolerance, largest shortfall first; the suite's ``tolerance``."""
+    from ddp.suite.spec import load_reference
+
+    results = [_result("a", "ddp", 0, {"id": 1.0}), _result("a", "ddp", 1, {"id": 0.8}),
+               _result("b", "ddp", 0, {"id": 0.5}), _result("b", "ddp", 1, {"id": 0.5}),
+               _result("c", "ddp", 0, {"id": 0.7})]
+    ref = load_reference({"values": {"ddp": {"id": {"mw": {"a": 90, "b": 70, "c": 72, "avg": 79}}}}}, source="s")
+    assert ref["tolerance"] == 10
+    paths = write_suite_report(results, tmp_path, "t", reference=ref)
+    md = (tmp_path / "vs_reference.md").read_text().splitlines()
+    assert tmp_path / "vs_reference.md" in paths
+    # ours: (0.9 + 0.5 + 0.7) / 3 = 70.0 (no std: c has one seed) against the paper's own 79 (the same tasks)
+    assert "| ddp | id | mw | 70.0 | 79 | -9.0 | yes |" in md
+    rows = [line for line in md if line.startswith("| ddp | id | ") and "| mw |" not in line]
+    assert rows == ["| ddp | id | b | 50.0 ± 0.0 | 70 | -20.0 |"]  # a: 0, c: -2: within 10 points
+    strict = load_reference({"tolerance": 1.5, "values": {"ddp": {"id": {"mw": {"a": 90, "b": 70, "c": 72,
+                                                                                    "avg": 79}}}}}, source="s")
+    write_suite_report(results, tmp_path / "strict", "t", reference=strict)
+    md = (tmp_path / "strict" / "vs_reference.md").read_text().splitlines()
+    assert "| ddp | id | mw | 70.0 | 79 | -9.0 | no |" in md
+    rows = [line.split(" | ")[2] for line in md if line.startswith("| ddp | id | ") and "| mw |" not in line]
+    assert rows == ["b", "c"]  # -20 before -2; a (0) stays out
+    write_suite_report(results, tmp_path / "none", "t")
+    assert not (tmp_path / "none" / "vs_reference.md").exists()
+    for bad in (-1, 101, "ten", True):
+        with pytest.raises(RecipeError, match="tolerance"):
+            load_reference({"tolerance": bad, "values": {}}, source="s")
+
+
 @pytest.mark.parametrize("name", ["metaworld_smoke", "metaworld_cpu", "adroit_cpu", "franka_cpu", "table1"])
 def test_shipped_suites_expand(name, monkeypatch):
     monkeypatch.chdir(ROOT)  # suite paths are relative to the repository root

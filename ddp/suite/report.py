@@ -6,7 +6,8 @@ and one average per benchmark. A cell is the mean success rate over seeds +/- it
 (sample std, ddof 1) with the seeds and episodes behind it; with a single seed it is the rate with
 its 95 % Wilson interval instead. A benchmark average is the mean over its tasks, and its std is
 that of the per-seed averages over tasks (seeds every task of the benchmark has).
-:func:`write_suite_report` writes ``table.md``, ``table.json``, ``table.csv`` and the figures of
+:func:`write_suite_report` writes ``table.md``, ``table.json``, ``table.csv``, ``cost.md``, with a
+reference ``vs_reference.md`` (the gaps to the published numbers), and the figures of
 :mod:`ddp.suite.figures` (``table.png``; ``detection.png`` when runs stored detector traces).
 """
 
@@ -22,7 +23,7 @@ import numpy as np
 from ddp import results_json
 from ddp.suite.figures import plot_detection, plot_table
 
-__all__ = ["aggregate", "wilson", "write_suite_report", "format_cell"]
+__all__ = ["aggregate", "wilson", "write_suite_report", "format_cell", "gaps_markdown"]
 
 
 def wilson(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
@@ -155,6 +156,37 @@ def markdown(table: dict, title: str, reference: dict | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def gaps_markdown(table: dict, reference: dict, title: str) -> str:
+    """Where the results stand against the reference: every benchmark average with a published number (ours,
+    theirs, the difference in percentage points, whether it is within the reference's ``tolerance``), then
+    every task cell outside the tolerance, largest shortfall first."""
+    ref, label = reference_cells(table, reference), reference["label"]
+    tol = float(reference.get("tolerance", 10))
+
+    def row(key: str) -> tuple[str, str, str, str, float]:
+        m, p, c = key.split("|")
+        ours = table["cells"][key]
+        gap = 100 * (ours["mean"] - ref[key])
+        spread = f" ± {100 * ours['std']:.1f}" if "std" in ours else ""
+        return m, p, c, f"{100 * ours['mean']:.1f}{spread}", gap
+
+    averages = [row(k) for k in ref if "|avg:" in k and k in table["cells"]]
+    tasks = sorted((row(k) for k in ref if "|avg:" not in k and k in table["cells"]), key=lambda r: r[4])
+    lines = [f"{title}: against the {label} numbers (percentage points; within ±{tol:g}: reproduced)", "",
+             f"| method | protocol | benchmark | ours | {label} | ours - {label} | within ±{tol:g} |",
+             "|---|---|---|---|---|---|---|"]
+    for m, p, c, ours, gap in averages:
+        lines.append(f"| {m} | {p} | {c[len('avg:'):]} | {ours} | {100 * ref[f'{m}|{p}|{c}']:.4g} | {gap:+.1f} | "
+                     f"{'yes' if abs(gap) <= tol + 1e-9 else 'no'} |")
+    outside = [r for r in tasks if abs(r[4]) > tol + 1e-9]
+    lines += ["", f"Task cells more than {tol:g} points from the {label}'s ({len(outside)} of {len(tasks)}), "
+              "largest shortfall first:", "", f"| method | protocol | task | ours | {label} | ours - {label} |",
+              "|---|---|---|---|---|---|"]
+    for m, p, c, ours, gap in outside:
+        lines.append(f"| {m} | {p} | {c} | {ours} | {100 * ref[f'{m}|{p}|{c}']:.4g} | {gap:+.1f} |")
+    return "\n".join(lines) + "\n"
+
+
 def _minutes(seconds: list[float]) -> str:
     return f"{statistics.median(seconds) / 60:.1f} [{min(seconds) / 60:.1f}, {max(seconds) / 60:.1f}]"
 
@@ -180,7 +212,8 @@ def cost_markdown(results: list[dict], title: str) -> str:
 def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
                        reference: dict | None = None) -> list[Path]:
     """table.md, table.json, table.csv, cost.md and table.png under ``out_dir``; returns their paths. A ``reference``
-    (the suite's published numbers) adds rows to table.md and a ``reference`` entry to table.json."""
+    (the suite's published numbers) adds rows to table.md, a ``reference`` entry to table.json and
+    ``vs_reference.md`` (:func:`gaps_markdown`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate(results)
@@ -200,6 +233,9 @@ def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
                 row += ["" if cell is None else cell["mean"], "" if cell is None else cell.get("std", "")]
             w.writerow(row)
     paths = [out / "table.md", out / "table.json", out / "table.csv", out / "cost.md"]
+    if ref:
+        (out / "vs_reference.md").write_text(gaps_markdown(table, reference, title))
+        paths.append(out / "vs_reference.md")
     try:
         paths.append(plot_table(table, cols, out / "table.png", title, ref,
                                 reference["label"] if reference else "paper"))

@@ -89,7 +89,8 @@ class SuiteSpec:
 
 def load_reference(value, *, source: str) -> dict | None:
     """A suite's ``reference`` (published numbers shown beside its results): a YAML file path or the mapping
-    itself, ``{label, values: method -> protocol -> benchmark -> task (or avg) -> percent}``."""
+    itself, ``{label, values: method -> protocol -> benchmark -> task (or avg) -> percent, tolerance}``
+    (``tolerance``: the percentage points a result may differ from it and still count as reproduced; 10)."""
     if value is None:
         return None
     from ddp.recipe import _read_yaml
@@ -117,7 +118,11 @@ def load_reference(value, *, source: str) -> dict | None:
                     if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 100:
                         raise RecipeError(f"{m}.{p}.{b}.{t} must be a percentage in [0, 100], got {v!r}",
                                           source=source, key=where)
-    return {"label": str(value.get("label", "reference")), "values": value["values"]}
+    tolerance = value.get("tolerance", 10)
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not 0 <= tolerance <= 100:
+        raise RecipeError(f"tolerance must be percentage points in [0, 100], got {tolerance!r}",
+                          source=source, key=where)
+    return {"label": str(value.get("label", "reference")), "values": value["values"], "tolerance": float(tolerance)}
 
 
 def _strings(value, *, key: str, source: str) -> list[str]:
