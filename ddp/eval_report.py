@@ -23,10 +23,26 @@ def protocol_result(episodes: list[dict], *, seconds: float, thresholds: dict, v
         "alpha": thresholds.get("alpha"),
         "per_episode": episodes,
     }
+    info = task_info_mean(episodes)
+    if info:
+        out["task_info"] = info
     if detection is not None:
         out["detection"] = detection
     if videos is not None:
         out["videos"] = videos
+    return out
+
+
+def task_info_mean(episodes: list[dict]) -> dict[str, float]:
+    """The mean over episodes of each task diagnostic the env reported at the episode's end (``task_info``:
+    e.g. Franka press's ``max_depth`` and ``over_pressed``), NaN values left out; empty when there are none."""
+    names = sorted({name for e in episodes for name in e.get("task_info") or {}})
+    out = {}
+    for name in names:
+        values = [e["task_info"][name] for e in episodes if name in (e.get("task_info") or {})]
+        values = [v for v in values if v is not None and np.isfinite(v)]
+        if values:
+            out[name] = float(np.mean(values))
     return out
 
 

@@ -176,6 +176,10 @@ def _summarise(traj, env_index: int, seed: int, latents: bool = False) -> dict:
     disturbed = _disturbed(traj)
     if disturbed is not None:
         out["disturbed"] = disturbed
+    info_key = ("next", "privileged", "task_info")
+    if info_key in traj.keys(True):  # the task's diagnostics at the episode's end (e.g. press depth, balls poured)
+        info = traj.get(info_key)
+        out["task_info"] = {name: float(info.get(name).reshape(info.shape[0], -1)[-1, 0]) for name in info.keys()}
     if latents:
         out["latent_real"] = traj.get(("ddp", "latent_real")).double().numpy()
         out["latent_pred"] = traj.get(("ddp", "latent_pred")).double().numpy()

@@ -147,6 +147,10 @@ def test_env_specs(envs, task):
     assert td["privileged", "object_pos"].shape == (k, 3) and td["privileged", "displacement"].shape == (k, 3)
     assert td["tracking", "segmentation"].dtype == torch.int32 and td["tracking", "depth"].shape == (24, 32)
     assert env.action_spec.shape == (7,)
+    # the task's diagnostics ride along under privileged/task_info, one float per name in info_keys
+    info = td["privileged", "task_info"]
+    assert set(info.keys()) == set(env.task.info_keys) and set(env.task.info_keys) == set(env.task_info())
+    assert all(float(info[name]) == pytest.approx(v) for name, v in env.task_info().items())
     if task == "stack":
         rgb = td["tracking", "rgb"]
         assert rgb.shape == (24, 32, 3) and rgb.dtype == torch.uint8 and int(rgb.max()) > 0
@@ -221,6 +225,8 @@ def test_press_fails_when_under_or_over_pressed(envs):
     assert env.task_state["max_depth"] < 0.006
     assert not press_to(0.0)  # drives far below the activation depth: over-pressed
     assert env.task_state["over_pressed"] and env.task_state["max_depth"] > 0.014
+    assert float(td["privileged", "task_info", "over_pressed"]) == 1.0  # what an evaluation reports per episode
+    assert float(td["privileged", "task_info", "max_depth"]) == pytest.approx(env.task_state["max_depth"])
     assert not press_to(0.052)  # a correct press afterwards does not undo the over-press
 
 

@@ -64,7 +64,7 @@ def traces(protocol: dict) -> list[dict] | None:
 
 
 def _summary(protocol: dict) -> dict:
-    out = {k: protocol[k] for k in ("success_rate", "successes", "episodes", "seconds", "tau", "alpha")
+    out = {k: protocol[k] for k in ("success_rate", "successes", "episodes", "seconds", "tau", "alpha", "task_info")
            if k in protocol}
     if "detection" in protocol:
         out["detection"] = {k: v for k, v in protocol["detection"].items() if k != "per_episode"}

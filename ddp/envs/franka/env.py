@@ -316,10 +316,13 @@ class FrankaEnv(PointCloudEnv):
     def _privileged_spec(self) -> dict:
         k = len(self._task.object_names)
         vec = self._vec_spec
-        return dict(
+        spec = dict(
             object_pos=vec(k, 3), object_quat=vec(k, 4), displacement=vec(k, 3), ee_offset=vec(3),
             ee_target=vec(3), ee_target_quat=vec(4), seed=self._int_spec(1), step=self._int_spec(1),
         )  # fmt: skip
+        if self._task.info_keys:  # the task's diagnostics (NaN on hardware), for the evaluation's per-episode report
+            spec["task_info"] = Composite({name: vec(1) for name in self._task.info_keys}, device=self.device)
+        return spec
 
     def _extra_spec(self) -> dict:
         cfg, dev = self.config, self.device
@@ -385,7 +388,15 @@ class FrankaEnv(PointCloudEnv):
             "ee_target_quat": self._f32(mat_to_quat(self.control.target_rot)),
             "seed": self._int(self._seed),
             "step": self._int(self._steps),
+            **self._task_info_output(),
         }
+
+    def _task_info_output(self) -> dict:
+        keys = self._task.info_keys
+        if not keys:
+            return {}
+        info = self.task_info()
+        return {"task_info": {name: self._f32([info.get(name, float("nan"))]) for name in keys}}
 
     def _render_cloud(self) -> np.ndarray:
         return self._cloud_fn(self.backend.render("policy"), self._rng)

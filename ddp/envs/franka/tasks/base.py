@@ -124,6 +124,8 @@ class FrankaTask:
     subtasks: tuple[str, ...] = ()
     #: bumped whenever the scripted oracle changes (part of the demo cache's key)
     oracle_version: int = 1
+    #: the names :meth:`info` returns, in order (the env's ``("privileged", "task_info")`` keys)
+    info_keys: tuple[str, ...] = ()
 
     # ------------------------------------------------------------------ layout
     def sample_layout(self, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -179,7 +181,7 @@ class FrankaTask:
         raise NotImplementedError
 
     def info(self, sim, state: dict) -> dict[str, float]:
-        """Diagnostics for reports (e.g. balls in the cup, press depth)."""
+        """Diagnostics for reports (e.g. balls in the cup, press depth): one float per name in ``info_keys``."""
         return {}
 
     # ------------------------------------------------------------------ oracle

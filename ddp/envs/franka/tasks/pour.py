@@ -81,6 +81,7 @@ class PourTask(FrankaTask):
     )
     max_episode_steps = 240
     subtasks = ("grasp the teapot (ends at gripper closure)", "pour into the cup (ends after an allotted time)")
+    info_keys = ("balls_in_cup", "teapot_returned")
     oracle_version = 3  # 3: the pot rises while it untilts and does not linger (the post-pour pose differs)
 
     def mjcf(self) -> tuple[str, str]:

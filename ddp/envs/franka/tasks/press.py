@@ -42,6 +42,7 @@ class PressTask(FrankaTask):
     displacements = (Displacement(("button",), (0.0, 0.15, 0.0), chunk=2),)
     max_episode_steps = 96
     subtasks = ("press the button to its activation depth",)
+    info_keys = ("depth", "max_depth", "over_pressed")
     oracle_version = 2
 
     def mjcf(self) -> tuple[str, str]:

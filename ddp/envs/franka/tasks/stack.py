@@ -46,6 +46,7 @@ class StackTask(FrankaTask):
     )
     max_episode_steps = 160
     subtasks = ("pick the pink block (ends at gripper closure)", "place it on the green block")
+    info_keys = ("xy_error", "height")
     oracle_version = 2
 
     def mjcf(self) -> tuple[str, str]:
