@@ -7,7 +7,11 @@ steps (loss, backward, fused AdamW, EMA; batch ``--batch``, random windows, a fi
 are timed interleaved, round after round, so that a noisy neighbour slows all four alike; the
 medians and the ratios are printed. Numbers, not assertions.
 
-    python benchmarks/train_step.py --threads 2 [--rounds 6] [--batch 32] [RECIPE ...]
+    python benchmarks/train_step.py --threads 2 [--rounds 6] [--batch 32] [--set KEY=VALUE ...] [RECIPE ...]
+
+``--set`` overrides every model's recipe (the DP3 baseline has no world model: world-model keys leave it as
+it is). ``--variant KEY=VALUE`` (repeatable) adds a fifth model, DDP with the fast paths and these overrides
+(e.g. ``--variant world_model.batch_fraction=0.5``), timed in the same rounds, with its ratios.
 """
 
 from __future__ import annotations
@@ -67,17 +71,27 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=6)
     parser.add_argument("--batch", type=int, default=32, help="training batch (the base recipes' own is 128)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="recipe override for every model (repeatable)")
+    parser.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE",
+                        help="also time DDP (fast paths) with these overrides (repeatable)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {platform.processor() or platform.machine()}, {args.threads} threads, "
-          f"batch {args.batch}, medians of {args.rounds} interleaved rounds")
+          f"batch {args.batch}, medians of {args.rounds} interleaved rounds"
+          + (f", overrides {' '.join(args.overrides)}" if args.overrides else ""))
     print("| recipe | DDP fast | DP3 fast | DDP / DP3 fast | DDP eager | DP3 eager (baseline) | DDP / DP3 eager "
           "| DDP fast / DP3 eager | speed-up DDP | speed-up DP3 |")
     print("|---|---|---|---|---|---|---|---|---|---|")
+    variants = []
     for recipe in args.recipes:
-        steps = {(method, path): train_step(recipe, [] if path == "fast" else EAGER, dp3=method == "dp3",
+        steps = {(method, path): train_step(recipe, [*args.overrides, *([] if path == "fast" else EAGER)],
+                                            dp3=method == "dp3",
                                             batch_size=args.batch)
                  for method in ("ddp", "dp3") for path in ("fast", "eager")}
+        if args.variant:
+            steps["ddp", "variant"] = train_step(recipe, [*args.overrides, *args.variant], dp3=False,
+                                                 batch_size=args.batch)
         times = {k: [] for k in steps}
         for _ in range(args.rounds):
             for k, step in steps.items():
@@ -88,6 +102,14 @@ def main() -> None:
         df, pf, de, pe = ms["ddp", "fast"], ms["dp3", "fast"], ms["ddp", "eager"], ms["dp3", "eager"]
         print(f"| {recipe} | {df:.0f} ms | {pf:.0f} ms | {df / pf:.2f}x | {de:.0f} ms | {pe:.0f} ms | {de / pe:.2f}x "
               f"| {df / pe:.2f}x | {de / df:.2f}x | {pe / pf:.2f}x |", flush=True)
+        if args.variant:
+            dv = ms["ddp", "variant"]
+            variants.append(f"| {recipe} | {dv:.0f} ms | {dv / df:.2f}x | {dv / pf:.2f}x | {dv / pe:.2f}x |")
+    if args.variant:
+        print(f"\nDDP with {' '.join(args.variant)} (fast paths), same rounds:\n")
+        print("| recipe | DDP variant | / DDP fast | / DP3 fast | / DP3 eager (baseline) |")
+        print("|---|---|---|---|---|")
+        print("\n".join(variants))
 
 
 if __name__ == "__main__":

@@ -62,12 +62,17 @@ class WorldModelConfig:
     # Algorithm 1 encodes the future targets with gradients (true); false encodes them without
     # gradient (cheaper; the encoder then learns from L_WM only through the history latents)
     target_gradient: bool = True
+    # beyond the paper (1.0: every sample): L_WM on the batch's first ceil(fraction * B) samples only (a
+    # random subset of a shuffled batch), so only their future frames are encoded and denoised; L_BC keeps all
+    batch_fraction: float = 1.0
     denoiser: dict = field(default_factory=lambda: {"name": "unet1d_wm"})
     scheduler: dict = field(default_factory=lambda: {"name": "ddim", "clip_sample": False})
 
     def __post_init__(self):
         if self.weight < 0:
             raise ValueError(f"weight must be >= 0; got {self.weight}")
+        if not 0.0 < self.batch_fraction <= 1.0:
+            raise ValueError(f"batch_fraction must be in (0, 1]; got {self.batch_fraction}")
 
 
 @dataclass

@@ -159,3 +159,39 @@ def test_world_model_target_gradient_option(tiny_recipe, target_gradient):
     future_grad = pc.grad[:, 2:10].abs().sum()
     assert (future_grad > 0) == target_gradient  # Algorithm 1: the future targets are encoded with gradients
     assert pc.grad[:, :2].abs().sum() > 0
+
+
+@pytest.mark.parametrize("target_gradient", [True, False])
+def test_world_model_batch_fraction_uses_only_the_first_samples_futures(tiny_recipe, target_gradient):
+    tiny_recipe["world_model"].update(target_gradient=target_gradient, batch_fraction=0.5)
+    e = build(tiny_recipe)
+    fit_normalizer(e)
+    batch = batch_of(e, batch_size=6)  # L_WM on ceil(0.5 * 6) = 3 samples
+    seen = []
+    predict = e.model.world_model_net.predict
+    e.model.world_model_net.predict = lambda x, t, *cond: seen.append(x.shape[0]) or predict(x, t, *cond)
+
+    def loss_wm(b):
+        return e.model.loss(b, generator=torch.Generator().manual_seed(0))["loss_wm"]
+
+    base = loss_wm(batch)
+    assert seen == [3]
+    other = batch.clone()
+    other["point_cloud"][3:, 2:] += 0.5  # the futures of the samples left out of L_WM
+    assert torch.equal(loss_wm(other), base)
+    other = batch.clone()
+    other["point_cloud"][:3, 2:] += 0.5  # the futures L_WM is computed on
+    assert not torch.allclose(loss_wm(other), base)
+    pc = batch["point_cloud"].clone().requires_grad_(True)
+    batch["point_cloud"] = pc
+    loss_wm(batch).backward()
+    assert (pc.grad[:3, 2:10].abs().sum() > 0) == target_gradient and pc.grad[3:, 2:10].abs().sum() == 0
+    assert pc.grad[:3, :2].abs().sum() > 0 and pc.grad[3:, :2].abs().sum() == 0  # L_WM's history conditioning too
+
+
+def test_world_model_batch_fraction_is_validated(tiny_recipe):
+    from ddp.errors import RecipeError
+
+    tiny_recipe["world_model"]["batch_fraction"] = 0.0
+    with pytest.raises((RecipeError, ValueError), match="batch_fraction"):
+        build(tiny_recipe)

@@ -11,6 +11,8 @@ With the world model disabled this is exactly DP3.
 
 from __future__ import annotations
 
+import math
+
 from typing import Any
 
 import torch
@@ -48,6 +50,7 @@ class DreamDiffusionPolicy(KeyedModule):
         action_steps: int = 8,
         world_model_weight: float = 1.0,
         world_model_target_gradient: bool = True,
+        world_model_batch_fraction: float = 1.0,
     ):
         super().__init__()
         self.encoder = encoder
@@ -65,6 +68,9 @@ class DreamDiffusionPolicy(KeyedModule):
         self.action_steps = action_steps
         self.world_model_weight = world_model_weight
         self.world_model_target_gradient = world_model_target_gradient
+        if not 0.0 < world_model_batch_fraction <= 1.0:
+            raise ValueError(f"world_model_batch_fraction must be in (0, 1]; got {world_model_batch_fraction}")
+        self.world_model_batch_fraction = world_model_batch_fraction
         self.latent_dim = encoder.out_dim
 
     @property
@@ -104,14 +110,16 @@ class DreamDiffusionPolicy(KeyedModule):
                 f"got {pc.shape[1]} and {act.shape[1]}"
             )
         # 2. Encode observations: history O_{0..M-1} and future O_{M..M+N-1}, one shared E_psi.
-        if self.has_world_model and not self.world_model_target_gradient:
+        #    With world_model_batch_fraction < 1 only the first Bw samples' future frames are encoded.
+        B = pc.shape[0]
+        Bw = B if self.world_model_batch_fraction >= 1.0 else max(1, math.ceil(self.world_model_batch_fraction * B))
+        if self.has_world_model and (not self.world_model_target_gradient or Bw < B):
             history = self.encode(pc[:, :M], pos[:, :M])
-            with torch.no_grad():
-                future_targets = self.encode(pc[:, M:n_obs], pos[:, M:n_obs])
-            latents = torch.cat([history, future_targets], 1)
+            with torch.set_grad_enabled(self.world_model_target_gradient and torch.is_grad_enabled()):
+                future = self.encode(pc[:Bw, M:n_obs], pos[:Bw, M:n_obs])
         else:
             latents = self.encode(pc[:, :n_obs], pos[:, :n_obs])
-        history = latents[:, :M]
+            history, future = latents[:, :M], latents[:, M:n_obs]
         actions = self.normalizer.normalize("action", act[:, :H])
 
         # 3. Diffusion policy loss L_BC, conditioned (FiLM) on the history latents.
@@ -123,10 +131,10 @@ class DreamDiffusionPolicy(KeyedModule):
         if self.has_world_model:
             # 4. World-model loss L_WM: future latents, conditioned on history (channel concat)
             #    and on the executed actions a_{M-1 .. M+N-2} (FiLM).
-            future = latents[:, M : M + N]
-            executed = actions[:, M - 1 : M - 1 + N].flatten(1)
+            executed = actions[:Bw, M - 1 : M - 1 + N].flatten(1)
+            wm_cond = history_cond[:Bw]
             loss_wm = self.world_model_scheduler.loss(
-                lambda x, t: self.world_model_net.predict(x, t, executed, history_cond), future, generator=generator
+                lambda x, t: self.world_model_net.predict(x, t, executed, wm_cond), future, generator=generator
             )
             # 5. L_total = L_BC + lambda * L_WM: the weighted term is the loss_* key
             out["loss_wm"] = self.world_model_weight * loss_wm

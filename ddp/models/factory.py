@@ -46,4 +46,5 @@ def build_model(recipe: Recipe, parts: dict[str, Part]) -> DreamDiffusionPolicy:
         action_steps=pol.action_steps,
         world_model_weight=wm.weight,
         world_model_target_gradient=wm.target_gradient,
+        world_model_batch_fraction=wm.batch_fraction,
     )
