@@ -11,7 +11,8 @@ medians and the ratios are printed. Numbers, not assertions.
 
 ``--set`` overrides every model's recipe (the DP3 baseline has no world model: world-model keys leave it as
 it is). ``--variant KEY=VALUE`` (repeatable) adds a fifth model, DDP with the fast paths and these overrides
-(e.g. ``--variant world_model.batch_fraction=0.5``), timed in the same rounds, with its ratios.
+(e.g. ``--variant world_model.batch_fraction=0.5``), timed in the same rounds, with its ratios. A
+``world_model.target_refresh_every`` variant pays its table's refresh amortised over ``--frames`` frames.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from tensordict import TensorDict
 
 from ddp import build
 from ddp.bench import baseline_of
+from ddp.models.ddp_policy import FRAME_INDEX
 from ddp.models.ema import EMA
 from ddp.train import make_optimizer
 
@@ -36,8 +38,11 @@ EAGER = ["policy.denoiser.cpu_weight_grad=onednn", "world_model.denoiser.cpu_wei
          "encoder.pool_backward=dense"]
 
 
-def train_step(recipe: str, overrides: list[str], *, dp3: bool, batch_size: int):
-    """A closure running one training step of the recipe's model on a fixed random batch."""
+def train_step(recipe: str, overrides: list[str], *, dp3: bool, batch_size: int, frames: int = 1974):
+    """A closure running one training step of the recipe's model on a fixed random batch.
+
+    With ``world_model.target_refresh_every`` K the future targets come from a table of ``frames``
+    random frames, and each step also re-encodes ``frames / K`` of them: the table's refresh, amortised."""
     exp = build(os.path.join(ROOT, recipe), [f"train.batch_size={batch_size}", *overrides])
     if dp3:
         exp = baseline_of(exp)
@@ -53,8 +58,18 @@ def train_step(recipe: str, overrides: list[str], *, dp3: bool, batch_size: int)
                           "action": act.reshape(-1, act.shape[-1])})
     batch = TensorDict({"point_cloud": pc, "agent_pos": pos, "action": act}, batch_size=[batch_size])
     optimizer, ema = make_optimizer(model, r.train), EMA(model, r.ema)
+    refresh = model.target_refresh_every if model.uses_target_table else 0
+    if refresh:
+        table_pc = 0.3 * torch.randn(frames, P, r.task.point_dim, generator=g)
+        table_pos = torch.rand(frames, D, generator=g)
+        model.refresh_target_table(table_pc, table_pos)
+        batch.set(FRAME_INDEX, torch.randint(frames, (batch_size, T), generator=g))
+        per_step = -(-frames // refresh)
 
     def step() -> None:
+        if refresh:  # the table's refresh (all frames every K steps), amortised over the K steps
+            with torch.no_grad():
+                model.encode(table_pc[:per_step], table_pos[:per_step])
         loss = model.loss(batch)["loss"]
         optimizer.zero_grad()
         loss.backward()
@@ -75,6 +90,9 @@ def main() -> None:
                         help="recipe override for every model (repeatable)")
     parser.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE",
                         help="also time DDP (fast paths) with these overrides (repeatable)")
+    parser.add_argument("--frames", type=int, default=1974,
+                        help="training frames whose target-table refresh a world_model.target_refresh_every variant "
+                             "pays, amortised (default 1974: the quickstart's 20 drawer-open demos)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {platform.processor() or platform.machine()}, {args.threads} threads, "
@@ -91,7 +109,7 @@ def main() -> None:
                  for method in ("ddp", "dp3") for path in ("fast", "eager")}
         if args.variant:
             steps["ddp", "variant"] = train_step(recipe, [*args.overrides, *args.variant], dp3=False,
-                                                 batch_size=args.batch)
+                                                 batch_size=args.batch, frames=args.frames)
         times = {k: [] for k in steps}
         for _ in range(args.rounds):
             for k, step in steps.items():

@@ -92,6 +92,18 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
         "agent_pos": torch.rand(B, T, D, device=dev),
         "action": torch.rand(B, T, r.task.action_dim, device=dev) * 2 - 1,
     }, batch_size=[B], device=dev)
+    if model.uses_target_table:
+        # world_model.target_refresh_every: the batch's own B x T frames stand in for the training frames.
+        # train_step_ms then excludes the table's refresh (all training frames, every K steps), timed apart:
+        # amortised, a step costs refresh_ms_per_1k_frames * frames / 1000 / K more
+        from ddp.models.ddp_policy import FRAME_INDEX
+
+        frames = B * T
+        batch.set(FRAME_INDEX, torch.arange(frames, device=dev).reshape(B, T))
+        flat_pc, flat_pos = batch["point_cloud"].reshape(frames, P, -1), batch["agent_pos"].reshape(frames, D)
+        refresh_ms = _timed(lambda: model.refresh_target_table(flat_pc, flat_pos), repeats=train_steps, warmup=1,
+                            device=dev)
+        out["target_refresh_ms_per_1k_frames"] = refresh_ms * 1000.0 / frames
     opt = make_optimizer(model, r.train)
     ema = EMA(model, r.ema) if r.ema.enabled else None
 

@@ -65,6 +65,11 @@ class WorldModelConfig:
     # beyond the paper (1.0: every sample): L_WM on the batch's first ceil(fraction * B) samples only (a
     # random subset of a shuffled batch), so only their future frames are encoded and denoised; L_BC keeps all
     batch_fraction: float = 1.0
+    # beyond the paper (0: off, the targets are encoded with every batch): with target_gradient false, the
+    # future targets are looked up in a table of every training frame's latent, re-encoded by the current
+    # encoder every `target_refresh_every` optimiser steps (targets at most that many steps old); each
+    # step then skips encoding its B x N future frames
+    target_refresh_every: int = 0
     denoiser: dict = field(default_factory=lambda: {"name": "unet1d_wm"})
     scheduler: dict = field(default_factory=lambda: {"name": "ddim", "clip_sample": False})
 
@@ -73,6 +78,11 @@ class WorldModelConfig:
             raise ValueError(f"weight must be >= 0; got {self.weight}")
         if not 0.0 < self.batch_fraction <= 1.0:
             raise ValueError(f"batch_fraction must be in (0, 1]; got {self.batch_fraction}")
+        if self.target_refresh_every < 0:
+            raise ValueError(f"target_refresh_every must be >= 0 (0: off); got {self.target_refresh_every}")
+        if self.target_refresh_every and self.target_gradient:
+            raise ValueError("target_refresh_every needs target_gradient: false (a table of latents carries no "
+                             "gradient back to the encoder)")
 
 
 @dataclass

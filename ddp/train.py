@@ -21,6 +21,7 @@ from ddp.checkpoint import load_checkpoint, save_checkpoint, stored_recipe
 from ddp.data.sequence import SequenceDataset
 from ddp.distributed import env_ranks, process_group
 from ddp.errors import CheckpointError, RecipeError
+from ddp.models.ddp_policy import FRAME_INDEX
 from ddp.models.ema import EMA
 from ddp.preemption import interruption, signals_deferred, stop_signals
 from ddp.recipe import recipe_changes
@@ -217,6 +218,10 @@ class Trainer:
                                                                        exp.recipe.seed * 1_000_003 + 7919 * i)
                   for i in mine}
         step, epoch, batch_in_epoch = 0, 0, 0
+        # world_model.target_refresh_every: the future targets come from a table of every frame's latent,
+        # re-encoded every `refresh` steps (the step of the last refresh is checkpointed with the table)
+        refresh = model.target_refresh_every if model.uses_target_table else 0
+        table_step = None
         if state is not None:
             try:
                 model.load_state_dict(state["model"])
@@ -249,6 +254,10 @@ class Trainer:
                 raise CheckpointError(f"{ckpt_path}: cannot resume into this recipe's model: "
                                       f"{describe_mismatch(model, state['model']) or str(err).splitlines()[0]}") from None
             step, epoch, batch_in_epoch = int(state["step"]), int(state["epoch"]), int(state["batch_in_epoch"])
+            table = state.get("target_table") if refresh else None
+            if table is not None and table.shape[0] == dataset.steps.shape[0]:  # else other demos: refresh now
+                model.target_table = table.to(self.device)
+                table_step = int(state["target_table_step"])
             if cfg.logger == "csv" and ranks.main:
                 trim_csv_logs(self.output_dir, step)  # rows a killed run logged after its last checkpoint
         logger = self._logger() if ranks.main else None
@@ -298,6 +307,9 @@ class Trainer:
             }
             if ema is not None:
                 payload["ema"] = ema.state_dict()
+            if refresh and table_step is not None:  # an exact resume needs the targets of the last refresh
+                payload["target_table"] = model.target_table.detach().cpu()
+                payload["target_table_step"] = table_step
             # no signal lands in the middle of the write: a second Ctrl-C is noted and acted on after it
             with signals_deferred() as received:
                 path = save_checkpoint(ckpt_path, payload)
@@ -313,10 +325,17 @@ class Trainer:
                 while batch_in_epoch < per_epoch and step < total:
                     idx = order[batch_in_epoch * cfg.batch_size : (batch_in_epoch + 1) * cfg.batch_size]
                     optimizer.zero_grad(set_to_none=True)
+                    if refresh and (table_step is None or step - table_step >= refresh):
+                        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                            model.refresh_target_table(dataset.steps["point_cloud"], dataset.steps["agent_pos"])
+                        table_step = step
                     size = idx.numel() // micro
                     step_losses = {k: 0.0 for k in sums}
                     for j, i in enumerate(mine):
-                        batch = dataset.batch(idx[i * size : (i + 1) * size]).to(self.device)
+                        part = idx[i * size : (i + 1) * size]
+                        batch = dataset.batch(part).to(self.device)
+                        if refresh:
+                            batch.set(FRAME_INDEX, dataset.indices[part].to(self.device))
                         # DDP all-reduces (averages over ranks) in the last backward of the step only
                         sync = parallel is None or j == len(mine) - 1
                         with (contextlib.nullcontext() if sync else parallel.no_sync()), \
@@ -368,6 +387,7 @@ class Trainer:
         if count:  # the steps since the last log line: a collective on every rank, before the save records it
             last_means = window_means()
         path = checkpoint()
+        model.target_table = None  # saved with the checkpoint; evaluation and later copies of the model skip it
         seconds = time.perf_counter() - t0
         return TrainResult(
             steps=step, epochs=epoch, loss=last_means["loss"], loss_bc=last_means["loss_bc"],

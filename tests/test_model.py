@@ -195,3 +195,57 @@ def test_world_model_batch_fraction_is_validated(tiny_recipe):
     tiny_recipe["world_model"]["batch_fraction"] = 0.0
     with pytest.raises((RecipeError, ValueError), match="batch_fraction"):
         build(tiny_recipe)
+
+
+def _windows(exp, batch_size=6, seed=0):
+    """A training batch with its ``frame_index`` (the window steps' rows in the frames), and the dataset."""
+    from ddp.data.sequence import SequenceDataset
+    from ddp.models.ddp_policy import FRAME_INDEX
+
+    ds = SequenceDataset(exp.episodes(), 16, pad_before=1, pad_after=7, keys=["point_cloud", "agent_pos", "action"])
+    idx = torch.randperm(len(ds), generator=torch.Generator().manual_seed(seed))[:batch_size]
+    batch = ds.batch(idx)
+    batch.set(FRAME_INDEX, ds.indices[idx])
+    return batch, ds
+
+
+@pytest.mark.parametrize("batch_fraction", [1.0, 0.5])
+def test_target_table_gives_the_targets_the_batch_would_encode(tiny_recipe, batch_fraction):
+    """world_model.target_refresh_every: future targets looked up in a table of every frame's latent equal
+    the same encoder's latents of the batch's future frames (same loss); a stale table changes L_WM only."""
+    tiny_recipe["world_model"].update(target_gradient=False, batch_fraction=batch_fraction)
+    encoded = fit_normalizer(build(tiny_recipe))
+    tiny_recipe["world_model"]["target_refresh_every"] = 5
+    table = build(tiny_recipe)
+    table.model.load_state_dict(encoded.model.state_dict())
+    batch, ds = _windows(encoded)
+
+    def losses(e):
+        return e.model.loss(batch, generator=torch.Generator().manual_seed(0))
+
+    with pytest.raises(RuntimeError, match="frame_index"):  # no table yet
+        losses(table)
+    table.model.refresh_target_table(ds.steps["point_cloud"], ds.steps["agent_pos"], frames_per_call=7)
+    assert table.model.target_table.shape == (ds.steps.shape[0], table.model.latent_dim)
+    base, looked_up = losses(encoded), losses(table)
+    for k in ("loss_bc", "loss_wm"):
+        torch.testing.assert_close(looked_up[k], base[k], rtol=1e-5, atol=1e-6)
+    # the encoder moves on, the table does not: the targets are stale (L_WM differs), the history is not (L_BC)
+    with torch.no_grad():
+        for p in table.model.encoder.parameters():
+            p.mul_(1.05)
+        for p in encoded.model.encoder.parameters():
+            p.mul_(1.05)
+    base, stale = losses(encoded), losses(table)
+    torch.testing.assert_close(stale["loss_bc"], base["loss_bc"], rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(stale["loss_wm"], base["loss_wm"], rtol=1e-3)
+    table.model.refresh_target_table(ds.steps["point_cloud"], ds.steps["agent_pos"])
+    torch.testing.assert_close(losses(table)["loss_wm"], base["loss_wm"], rtol=1e-5, atol=1e-6)
+
+
+def test_target_refresh_needs_detached_targets(tiny_recipe):
+    from ddp.errors import RecipeError
+
+    tiny_recipe["world_model"].update(target_gradient=True, target_refresh_every=10)
+    with pytest.raises((RecipeError, ValueError), match="target_gradient"):
+        build(tiny_recipe)

@@ -542,3 +542,63 @@ def test_cli_bench_compares_with_the_dp3_baseline_in_the_same_process(tmp_path, 
         assert base > 0 and ratio.endswith("x")
         assert float(ratio[:-1]) == pytest.approx(mine / base, rel=0.1, abs=0.01)  # printed values are rounded
 
+
+
+# --------------------------------------------------------------------------- world_model.target_refresh_every
+
+
+def _train_counting_refreshes(recipe, out, max_steps):
+    """Train ``recipe`` to ``max_steps``; return the experiment and the step of every target-table refresh."""
+    recipe["train"].update(max_steps=max_steps, epochs=100, log_every_steps=1)
+    exp = build(recipe)
+    refreshed, orig = [], exp.model.refresh_target_table
+    exp.model.refresh_target_table = lambda *a, **k: refreshed.append(len(calls)) or orig(*a, **k)
+    calls, loss = [], exp.model.loss
+    exp.model.loss = lambda batch, generator=None: calls.append(1) or loss(batch, generator=generator)
+    exp.train(output_dir=out, progress=False)
+    return exp, refreshed
+
+
+def test_target_table_refreshes_on_schedule_and_resumes_with_its_targets(tmp_path):
+    """refresh_every 1 trains like targets encoded with each batch; 3 refreshes at steps 0 and 3, stores
+    the table and its step in the checkpoint, and a resume keeps using it until the next refresh is due."""
+    torch.set_num_threads(1)
+    recipe = copy.deepcopy(TINY)
+    recipe["world_model"]["target_gradient"] = False
+    encoded, _ = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "encoded", 4)
+    recipe["world_model"]["target_refresh_every"] = 1
+    every, refreshed = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "every", 4)
+    assert refreshed == [0, 1, 2, 3]
+    for name, p in _params(encoded).items():
+        torch.testing.assert_close(_params(every)[name], p, rtol=1e-4, atol=1e-5, msg=name)
+    recipe["world_model"]["target_refresh_every"] = 3
+    stale, refreshed = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "stale", 4)
+    assert refreshed == [0, 3]
+    moved = max((_params(stale)[n] - p).abs().max().item() for n, p in _params(encoded).items())
+    assert moved > 1e-6  # step 3's targets were 2 updates old at step 2
+    state = load_checkpoint(tmp_path / "stale" / "last.pt")
+    assert state["target_table_step"] == 3 and state["target_table"].shape[1] == stale.model.latent_dim
+    assert "target_table" not in state["model"]  # not a weight: the model's state_dict is unchanged
+    # resumed at step 4 with the table of step 3: no refresh before step 6
+    resumed, refreshed = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "stale", 7)
+    assert refreshed == [2]  # the third step of this call, i.e. step 6
+    assert resumed.model.target_table is None  # kept in the checkpoint, not on the trained model
+    # a stored table of other demos (a row count that differs) is refreshed at once
+    from ddp.checkpoint import save_checkpoint
+
+    state = load_checkpoint(tmp_path / "stale" / "last.pt")
+    state["target_table"] = state["target_table"][:-1]
+    save_checkpoint(tmp_path / "stale" / "last.pt", state)
+    _, refreshed = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "stale", 8)
+    assert refreshed == [0]
+
+
+def test_cli_bench_times_a_target_table_step_and_its_refresh(tmp_path, capsys):
+    from ddp.cli import main
+
+    recipe = _cli_recipe(tmp_path)
+    sets = ["--set", "world_model.target_gradient=false", "--set", "world_model.target_refresh_every=50"]
+    assert main(["bench", recipe, "--repeats", "1", *sets]) == 0
+    rows = {line.split()[0]: line.split()[1:] for line in capsys.readouterr().out.strip().splitlines()[2:]}
+    assert float(rows["train_step_ms"][0]) > 0 and float(rows["train_step_ms"][1]) > 0  # and the DP3 baseline's
+    assert float(rows["target_refresh_ms_per_1k_frames"][0]) > 0 and rows["target_refresh_ms_per_1k_frames"][1] == "-"

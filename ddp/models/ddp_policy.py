@@ -21,6 +21,9 @@ from tensordict import TensorDict
 from ddp.keys import KeyedModule
 from ddp.models.normalizer import MinMaxNormalizer
 
+#: the batch key holding each window step's row in the training frames (read with ``target_refresh_every``)
+FRAME_INDEX = "frame_index"
+
 
 class DreamDiffusionPolicy(KeyedModule):
     """Encoder E_psi + policy pi_theta + world model W_phi (optional) + normaliser.
@@ -51,6 +54,7 @@ class DreamDiffusionPolicy(KeyedModule):
         world_model_weight: float = 1.0,
         world_model_target_gradient: bool = True,
         world_model_batch_fraction: float = 1.0,
+        world_model_target_refresh_every: int = 0,
     ):
         super().__init__()
         self.encoder = encoder
@@ -71,6 +75,12 @@ class DreamDiffusionPolicy(KeyedModule):
         if not 0.0 < world_model_batch_fraction <= 1.0:
             raise ValueError(f"world_model_batch_fraction must be in (0, 1]; got {world_model_batch_fraction}")
         self.world_model_batch_fraction = world_model_batch_fraction
+        if world_model_target_refresh_every < 0:
+            raise ValueError(f"world_model_target_refresh_every must be >= 0; got {world_model_target_refresh_every}")
+        if world_model_target_refresh_every and world_model_target_gradient:
+            raise ValueError("world_model_target_refresh_every needs world_model_target_gradient=False")
+        self.target_refresh_every = world_model_target_refresh_every
+        self.target_table: torch.Tensor | None = None  # [frames, latent_dim]: see refresh_target_table
         self.latent_dim = encoder.out_dim
 
     @property
@@ -90,6 +100,28 @@ class DreamDiffusionPolicy(KeyedModule):
         pos = self.normalizer.normalize("agent_pos", agent_pos)
         return self.encoder.encode(pc, pos)
 
+    @property
+    def uses_target_table(self) -> bool:
+        """Training looks the world model's future targets up in :attr:`target_table` (``target_refresh_every``)."""
+        return self.has_world_model and self.target_refresh_every > 0
+
+    @torch.no_grad()
+    def refresh_target_table(self, point_cloud: torch.Tensor, agent_pos: torch.Tensor, frames_per_call: int = 256) -> None:
+        """Encode every training frame (``point_cloud`` [F, P, C], ``agent_pos`` [F, D], unnormalised) with the
+        current encoder into :attr:`target_table` [F, latent_dim], ``frames_per_call`` frames at a time.
+
+        :meth:`loss` then reads the future targets of a batch that carries ``frame_index`` from the table
+        instead of encoding them. The table is overwritten in place (a compiled loss keeps its guards).
+        """
+        frames = point_cloud.shape[0]
+        dev = next(self.parameters()).device
+        if self.target_table is None or self.target_table.shape[0] != frames or self.target_table.device != dev:
+            self.target_table = torch.empty(frames, self.latent_dim, device=dev)
+        for start in range(0, frames, frames_per_call):
+            end = min(start + frames_per_call, frames)
+            latents = self.encode(point_cloud[start:end].to(dev), agent_pos[start:end].to(dev))
+            self.target_table[start:end] = latents.to(self.target_table.dtype)
+
     # ------------------------------------------------------------------ training (Algorithm 1)
     def loss(self, batch: TensorDict, generator: torch.Generator | None = None) -> TensorDict:
         """The objective's terms, TorchRL style: the ``loss_*`` keys sum to the objective.
@@ -99,7 +131,9 @@ class DreamDiffusionPolicy(KeyedModule):
 
         ``batch`` holds windows: ``point_cloud`` [B, T, P, C], ``agent_pos``
         [B, T, D] with T >= M + N (T >= M without a world model) and
-        ``action`` [B, H, A], all unnormalised.
+        ``action`` [B, H, A], all unnormalised. With ``target_refresh_every`` the batch also carries
+        ``frame_index`` [B, T] (each window step's row in the training frames) and the future targets
+        are rows of :attr:`target_table` (see :meth:`refresh_target_table`), not encoded here.
         """
         M, N, H = self.obs_steps, self.action_steps, self.horizon
         pc, pos, act = batch[self.key("point_cloud")], batch[self.key("agent_pos")], batch["action"]
@@ -113,7 +147,13 @@ class DreamDiffusionPolicy(KeyedModule):
         #    With world_model_batch_fraction < 1 only the first Bw samples' future frames are encoded.
         B = pc.shape[0]
         Bw = B if self.world_model_batch_fraction >= 1.0 else max(1, math.ceil(self.world_model_batch_fraction * B))
-        if self.has_world_model and (not self.world_model_target_gradient or Bw < B):
+        if self.uses_target_table:
+            if self.target_table is None or FRAME_INDEX not in batch.keys():
+                raise RuntimeError("world_model.target_refresh_every > 0: the loss needs the batch's 'frame_index' "
+                                   "and a target table (refresh_target_table; ddp train does both)")
+            history = self.encode(pc[:, :M], pos[:, :M])
+            future = self.target_table[batch[FRAME_INDEX][:Bw, M:n_obs]].to(history.dtype)
+        elif self.has_world_model and (not self.world_model_target_gradient or Bw < B):
             history = self.encode(pc[:, :M], pos[:, :M])
             with torch.set_grad_enabled(self.world_model_target_gradient and torch.is_grad_enabled()):
                 future = self.encode(pc[:Bw, M:n_obs], pos[:Bw, M:n_obs])

@@ -47,4 +47,5 @@ def build_model(recipe: Recipe, parts: dict[str, Part]) -> DreamDiffusionPolicy:
         world_model_weight=wm.weight,
         world_model_target_gradient=wm.target_gradient,
         world_model_batch_fraction=wm.batch_fraction,
+        world_model_target_refresh_every=wm.target_refresh_every,
     )
