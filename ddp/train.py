@@ -382,6 +382,10 @@ class Trainer:
                     checkpoint()
                 except KeyboardInterrupt:
                     pass  # a second Ctrl-C during the save: the save completed; stop as asked
+            model.target_table = None  # saved with the checkpoint (a resume reloads it), not kept on the model
+            raise
+        except BaseException:
+            model.target_table = None
             raise
         bar.close()
         if count:  # the steps since the last log line: a collective on every rank, before the save records it

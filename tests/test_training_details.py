@@ -593,6 +593,31 @@ def test_target_table_refreshes_on_schedule_and_resumes_with_its_targets(tmp_pat
     assert refreshed == [0]
 
 
+def test_an_interrupted_fit_saves_the_target_table_and_drops_it_from_the_model(tmp_path):
+    recipe = copy.deepcopy(TINY)
+    recipe["world_model"].update(target_gradient=False, target_refresh_every=2)
+    recipe["train"].update(max_steps=6, epochs=100)
+    exp = build(recipe)
+    loss, calls = exp.model.loss, []
+
+    def interrupted(batch, generator=None):
+        calls.append(1)
+        if len(calls) == 4:
+            raise KeyboardInterrupt  # Ctrl-C during step 4
+        return loss(batch, generator=generator)
+
+    exp.model.loss = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        exp.train(output_dir=tmp_path, progress=False)
+    assert exp.model.target_table is None
+    state = load_checkpoint(tmp_path / "last.pt")
+    assert state["step"] == 3 and state["target_table_step"] == 2 and state["target_table"] is not None
+    exp.model.loss = lambda batch, generator=None: (_ for _ in ()).throw(RuntimeError("boom"))
+    with pytest.raises(RuntimeError, match="boom"):
+        exp.train(output_dir=tmp_path, progress=False)
+    assert exp.model.target_table is None
+
+
 def test_cli_bench_times_a_target_table_step_and_its_refresh(tmp_path, capsys):
     from ddp.cli import main
 
