@@ -247,7 +247,8 @@ def test_pause_fingers_stops_a_closing_gripper_during_a_shift(make_env):
 
 @pytest.mark.filterwarnings("ignore:Constant")  # metaworld's policies warn about their own gains
 def test_pause_fingers_keeps_a_grasped_object_in_hand(make_env):
-    """Paused fingers still squeeze: a lifted puck travels with the shifted hand."""
+    """Paused fingers still squeeze: a lifted puck travels with the shifted hand (a pause that released the
+    actuators' grip, or opened the gripper, drops it; unpaused fingers carry it too)."""
     from ddp.data.sources.metaworld_expert import MetaWorldExpert
 
     env = make_env(task="pick-place", render_point_cloud=False, pause_fingers=True)

@@ -52,7 +52,8 @@ the end-effector follows the object at the displacement chunk (with a 5 cm
 "safe lift" for pick-place) and, on two-stage tasks, snaps back by
 ``-delta`` at the snap-back chunk; the carried object's recorded
 displacement is then cleared. Each oracle move pauses the episode for
-``settle_steps`` simulated steps so the hand reaches its new target.
+``settle_steps`` simulated steps so the hand reaches its new target
+(``pause_fingers=True``: with the fingers held where they are).
 ``occlusion_chunk`` blinds the camera for ``occlusion_chunks`` chunks.
 
 Public methods for oracle tracker / recovery plugins:
