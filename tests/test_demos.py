@@ -265,6 +265,15 @@ def test_options_added_later_keep_older_demo_caches_at_their_default(mw_cache):
     assert drawn.generation_params()["env_config_hash"] != params["env_config_hash"]
 
 
+def test_eval_only_env_options_leave_the_demo_cache_alone(mw_cache):
+    """pause_fingers only acts during tracking shifts, which demos never make: set or not, the same cache."""
+    _, source, _ = mw_cache
+    params = source.generation_params()
+    assert "pause_fingers" not in params["env_config"]
+    paused = _source({**_mw_recipe(source.path.parent), "env": {**SMALL_ENV, "pause_fingers": True}})
+    assert paused.generation_params()["env_config_hash"] == params["env_config_hash"]
+
+
 def test_metaworld_cache_is_replaced_atomically(tmp_path, monkeypatch):
     pytest.importorskip("metaworld")
     from ddp.data.sources.metaworld_expert import MetaWorldExpertDemos

@@ -225,6 +225,50 @@ def test_oracle_tracking_and_two_stage_snap_back(make_env):
             np.testing.assert_allclose(disp[k], expected, atol=1e-6)
 
 
+def _finger_width(env) -> float:
+    right, left = env._fingers
+    return float(np.linalg.norm(env.sim.data.site_xpos[right] - env.sim.data.site_xpos[left]))
+
+
+def test_pause_fingers_stops_a_closing_gripper_during_a_shift(make_env):
+    """Fingers that began closing on air finish closing during the settled shift unless paused."""
+    widths = {}
+    for pause in (False, True):
+        env = make_env(task="pick-place", render_point_cloud=False, pause_fingers=pause)
+        td = env.reset(seed=7)
+        for _ in range(2):  # the close command has just started
+            td = _step(env, td, [0.0, 0.0, 0.0, 1.0])
+        before = _finger_width(env)
+        env.shift_end_effector([-0.2, -0.1, 0.0], safe_lift=0.05)
+        widths[pause] = (before, _finger_width(env))
+    assert widths[False][1] < widths[False][0] - 0.03, widths
+    np.testing.assert_allclose(widths[True][1], widths[True][0], atol=1e-3)
+
+
+@pytest.mark.filterwarnings("ignore:Constant")  # metaworld's policies warn about their own gains
+def test_pause_fingers_keeps_a_grasped_object_in_hand(make_env):
+    """Paused fingers still squeeze: a lifted puck travels with the shifted hand (a pause that released the
+    actuators' grip, or opened the gripper, drops it; unpaused fingers carry it too)."""
+    from ddp.data.sources.metaworld_expert import MetaWorldExpert
+
+    env = make_env(task="pick-place", render_point_cloud=False, pause_fingers=True)
+    expert = MetaWorldExpert("pick-place")
+    td = env.reset(seed=3)
+    puck0 = td["privileged", "object_pos"][0].numpy().copy()
+    for _ in range(150):
+        td = _step(env, td, expert(td))
+        if td["privileged", "object_pos"][0, 2] > puck0[2] + 0.03:
+            break
+    else:
+        pytest.fail("the expert did not lift the puck")
+    data = env.sim.data
+    puck, hand = data.xpos[env._body_ids[0]].copy(), data.xpos[env._hand].copy()
+    env.shift_end_effector([0.08, 0.0, 0.0])
+    moved, hand_moved = data.xpos[env._body_ids[0]] - puck, data.xpos[env._hand] - hand
+    assert hand_moved[0] > 0.06, hand_moved
+    np.testing.assert_allclose(moved, hand_moved, atol=0.01)
+
+
 def test_model_edits_are_undone_on_reset(make_env):
     fresh = make_env(task="coffee-pull", **SMALL)
     env = make_env(task="coffee-pull", chunk_len=1, displacement=True, oracle_tracking=True, **SMALL)

@@ -52,7 +52,8 @@ the end-effector follows the object at the displacement chunk (with a 5 cm
 "safe lift" for pick-place) and, on two-stage tasks, snaps back by
 ``-delta`` at the snap-back chunk; the carried object's recorded
 displacement is then cleared. Each oracle move pauses the episode for
-``settle_steps`` simulated steps so the hand reaches its new target.
+``settle_steps`` simulated steps so the hand reaches its new target
+(``pause_fingers=True``: with the fingers held where they are).
 ``occlusion_chunk`` blinds the camera for ``occlusion_chunks`` chunks.
 
 Public methods for oracle tracker / recovery plugins:
@@ -141,13 +142,16 @@ class MetaWorldEnvConfig(ObservationOptions):
         oracle_tracking: apply the paper's oracle end-effector tracking (and snap-back).
         settle_steps: MetaWorld steps simulated (not counted) after each oracle end-effector
             move so the hand reaches it (per phase of a safe-lift move; 0 = bare mocap write).
+        pause_fingers: hold the two finger joints where they are during those settle steps (the
+            paper pauses the environment while the end-effector moves); False lets the last gripper
+            command keep acting, so fingers that had begun to close go on closing on the way.
         occlusion_chunk: first blind chunk (None: no occlusion).
         occlusion_chunks: number of blind chunks.
         occlusion_mode: the blind cloud: ``"zeros"``, ``"drop"`` or ``"noise"``.
     """
 
     #: options that leave the demo-cache hash alone at this value (added after caches existed)
-    cache_neutral_defaults: ClassVar[dict] = {"visible_sites": []}
+    cache_neutral_defaults: ClassVar[dict] = {"visible_sites": [], "pause_fingers": False}
 
     task: str = "button-press"
     seed_tasks: int = 0
@@ -165,6 +169,7 @@ class MetaWorldEnvConfig(ObservationOptions):
     displacement_delta: tuple[float, float, float] | None = None
     oracle_tracking: bool = False
     settle_steps: int = 10
+    pause_fingers: bool = False
 
     def __post_init__(self):
         self.visible_sites = tuple(self.visible_sites)
@@ -244,6 +249,9 @@ class MetaWorldEnv(MujocoCloudEnv):
         self._hand = model.body("hand").id
         self._fingers = (model.site("rightEndEffector").id, model.site("leftEndEffector").id)
         self._mocap = int(model.body_mocapid[model.body("mocap").id])
+        finger_joints = [model.joint(name) for name in ("r_close", "l_close")]
+        self._finger_qpos = np.array([int(j.qposadr[0]) for j in finger_joints])
+        self._finger_qvel = np.array([int(j.dofadr[0]) for j in finger_joints])
         # model state that disturbances edit; restored at every reset
         self._body_pos0 = model.body_pos.copy()
         self._site_pos0 = model.site_pos.copy()
@@ -324,7 +332,8 @@ class MetaWorldEnv(MujocoCloudEnv):
         paused". The hand follows the mocap through its weld, so the pause
         simulates ``settle_steps`` MetaWorld steps (default
         ``config.settle_steps``; about 10 bring a 25 cm jump within ~1 cm)
-        with the gripper command unchanged; they do not count as env steps.
+        with the gripper command unchanged (``config.pause_fingers``: the finger
+        joints held where they were); they do not count as env steps.
         ``settle_steps=0`` only writes the mocap (the hand then catches up
         during the next actions). The target is clipped to MetaWorld's mocap
         bounds, as the next action would do. With ``safe_lift > 0`` (the
@@ -400,8 +409,19 @@ class MetaWorldEnv(MujocoCloudEnv):
         data = self.sim.data
         data.mocap_pos[self._mocap] = mocap_pos
         data.mocap_quat[self._mocap] = np.array([1.0, 0.0, 1.0, 0.0])
-        if steps > 0:
-            self._mj.mj_step(self.sim.model, data, nstep=steps * self.sim.frame_skip)
+        nstep = steps * self.sim.frame_skip
+        if nstep == 0:
+            return
+        if not self.config.pause_fingers:
+            self._mj.mj_step(self.sim.model, data, nstep=nstep)
+            return
+        # the arm moves, the fingers stay put: what they hold is still squeezed (the actuators keep
+        # their command against it), fingers closing on air stop where they are
+        qpos = data.qpos[self._finger_qpos].copy()
+        for _ in range(nstep):
+            self._mj.mj_step(self.sim.model, data)
+            data.qpos[self._finger_qpos] = qpos
+            data.qvel[self._finger_qvel] = 0.0
 
     def _widen_goal_space(self) -> None:
         """Let a displaced goal leave MetaWorld's ID goal box unclipped in the state."""

@@ -41,7 +41,7 @@ CACHE_VERSION = 1
 #: env options that only matter at evaluation: reset to their defaults for demos (and the cache hash)
 _EVAL_ONLY = (
     "obs_every", "obs_history", "chunk_len", "displacement", "displacement_chunk", "displacement_delta",
-    "oracle_tracking", "settle_steps", "occlusion_chunk", "occlusion_chunks", "occlusion_mode",
+    "oracle_tracking", "settle_steps", "pause_fingers", "occlusion_chunk", "occlusion_chunks", "occlusion_mode",
     "terminate_on_success",
 )  # fmt: skip
 
