@@ -319,76 +319,76 @@ class Trainer:
                 raise interruption(received[0])
             return path
 
-        try:  # the target table is saved with each checkpoint (a resume reloads it), never kept on the model
-            try:
-                while epoch < cfg.epochs and step < total:
-                    order = self._epoch_order(epoch, len(dataset))
-                    while batch_in_epoch < per_epoch and step < total:
-                        idx = order[batch_in_epoch * cfg.batch_size : (batch_in_epoch + 1) * cfg.batch_size]
-                        optimizer.zero_grad(set_to_none=True)
-                        if refresh and (table_step is None or step - table_step >= refresh):
-                            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
-                                model.refresh_target_table(dataset.steps["point_cloud"], dataset.steps["agent_pos"])
-                            table_step = step
-                        size = idx.numel() // micro
-                        step_losses = {k: 0.0 for k in sums}
-                        for j, i in enumerate(mine):
-                            part = idx[i * size : (i + 1) * size]
-                            batch = dataset.batch(part).to(self.device)
-                            if refresh:
-                                batch.set(FRAME_INDEX, dataset.indices[part].to(self.device))
-                            # DDP all-reduces (averages over ranks) in the last backward of the step only
-                            sync = parallel is None or j == len(mine) - 1
-                            with (contextlib.nullcontext() if sync else parallel.no_sync()), \
-                                    torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
-                                # the objective is the sum of the loss_* terms (TorchRL's convention)
-                                if parallel is None:
-                                    losses = loss_fn(batch, generator=noises[i])
-                                    objective = sum(losses[k] for k in losses.keys() if k.startswith("loss_"))
-                                else:
-                                    objective, losses = parallel(batch, noises[i])
-                                # the mean over the global batch, whatever share of it this rank holds
-                                (objective * (ranks.world / micro)).backward()
-                            for k in step_losses:
-                                step_losses[k] += losses[k].detach().item() / len(mine)
-                        if cfg.grad_clip_norm:
-                            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
-                        optimizer.step()
-                        lr_sched.step()
-                        if ema is not None:
-                            ema.update(model)
-                        step += 1
-                        batch_in_epoch += 1
-                        samples += idx.numel()
-                        for k in sums:
-                            sums[k] += step_losses[k]
-                        count += 1
-                        bar.update(1)
-                        if step % cfg.log_every_steps == 0 or step == total:
-                            means = window_means()
-                            bar.set_postfix({k: f"{v:.4f}" for k, v in means.items()})
-                            if logger is not None:
-                                for k, v in means.items():
-                                    logger.log_scalar(k, v, step=step)
-                                logger.log_scalar("lr", lr_sched.get_last_lr()[0], step=step)
-                            last_means, sums, count = means, {k: 0.0 for k in sums}, 0
-                    if batch_in_epoch >= per_epoch:
-                        epoch, batch_in_epoch = epoch + 1, 0
-                        if epoch % cfg.checkpoint_every_epochs == 0:
-                            checkpoint()
-            except KeyboardInterrupt:  # Ctrl-C, or Preempted (SIGTERM / SIGHUP)
-                bar.close()
-                if saved_step != step:
-                    try:
+        try:
+            while epoch < cfg.epochs and step < total:
+                order = self._epoch_order(epoch, len(dataset))
+                while batch_in_epoch < per_epoch and step < total:
+                    idx = order[batch_in_epoch * cfg.batch_size : (batch_in_epoch + 1) * cfg.batch_size]
+                    optimizer.zero_grad(set_to_none=True)
+                    if refresh and (table_step is None or step - table_step >= refresh):
+                        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                            model.refresh_target_table(dataset.steps["point_cloud"], dataset.steps["agent_pos"])
+                        table_step = step
+                    size = idx.numel() // micro
+                    step_losses = {k: 0.0 for k in sums}
+                    for j, i in enumerate(mine):
+                        part = idx[i * size : (i + 1) * size]
+                        batch = dataset.batch(part).to(self.device)
+                        if refresh:
+                            batch.set(FRAME_INDEX, dataset.indices[part].to(self.device))
+                        # DDP all-reduces (averages over ranks) in the last backward of the step only
+                        sync = parallel is None or j == len(mine) - 1
+                        with (contextlib.nullcontext() if sync else parallel.no_sync()), \
+                                torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                            # the objective is the sum of the loss_* terms (TorchRL's convention)
+                            if parallel is None:
+                                losses = loss_fn(batch, generator=noises[i])
+                                objective = sum(losses[k] for k in losses.keys() if k.startswith("loss_"))
+                            else:
+                                objective, losses = parallel(batch, noises[i])
+                            # the mean over the global batch, whatever share of it this rank holds
+                            (objective * (ranks.world / micro)).backward()
+                        for k in step_losses:
+                            step_losses[k] += losses[k].detach().item() / len(mine)
+                    if cfg.grad_clip_norm:
+                        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
+                    optimizer.step()
+                    lr_sched.step()
+                    if ema is not None:
+                        ema.update(model)
+                    step += 1
+                    batch_in_epoch += 1
+                    samples += idx.numel()
+                    for k in sums:
+                        sums[k] += step_losses[k]
+                    count += 1
+                    bar.update(1)
+                    if step % cfg.log_every_steps == 0 or step == total:
+                        means = window_means()
+                        bar.set_postfix({k: f"{v:.4f}" for k, v in means.items()})
+                        if logger is not None:
+                            for k, v in means.items():
+                                logger.log_scalar(k, v, step=step)
+                            logger.log_scalar("lr", lr_sched.get_last_lr()[0], step=step)
+                        last_means, sums, count = means, {k: 0.0 for k in sums}, 0
+                if batch_in_epoch >= per_epoch:
+                    epoch, batch_in_epoch = epoch + 1, 0
+                    if epoch % cfg.checkpoint_every_epochs == 0:
                         checkpoint()
-                    except KeyboardInterrupt:
-                        pass  # a second Ctrl-C during the save: the save completed; stop as asked
-                raise
+        except KeyboardInterrupt:  # Ctrl-C, or Preempted (SIGTERM / SIGHUP)
+            bar.close()
+            if saved_step != step:
+                try:
+                    checkpoint()
+                except KeyboardInterrupt:
+                    pass  # a second Ctrl-C during the save: the save completed; stop as asked
+            raise
+        else:
             bar.close()
             if count:  # the steps since the last log line: a collective on every rank, before the save records it
                 last_means = window_means()
             path = checkpoint()
-        finally:
+        finally:  # the target table is saved with each checkpoint (a resume reloads it), never kept on the model
             model.target_table = None
         seconds = time.perf_counter() - t0
         return TrainResult(
