@@ -1,0 +1,149 @@
+"""A suite under a time limit (``ddp suite --time-limit 2h30m``): start only the runs that fit, stop the rest in time.
+
+A cluster job or a lent machine has a wall-clock limit; a run killed at that limit loses whatever it had not
+checkpointed, and one started ten minutes before it wastes those ten minutes. With a time limit the suite:
+
+* estimates each run's cost from what this suite's stored results cost (:func:`estimate_seconds`): the
+  median over the stored runs of the same task and method, else of the same method, of training time (all
+  of it, across resumes) plus evaluation time, or the run's wall time where that is longer; a run that
+  resumes a checkpoint pays only the training steps still to go; one that re-evaluates pays only those
+  protocols' evaluation;
+* starts a run only if that estimate fits in the time left (a run with nothing to estimate from starts
+  while any time is left), checked when a worker takes the run and estimated again then from the results
+  stored by that time (on Ray, the estimate made at submission), so that a shorter run later in the queue
+  can still use the end of the budget;
+* at the limit stops the runs still going as SIGTERM would (a training run saves its checkpoint), stores
+  what finished, writes the table and exits with status 75 (``EX_TEMPFAIL``: run the same command again to
+  go on); :class:`SuiteTimeLimit` lists what was stopped and what did not start.
+"""
+
+from __future__ import annotations
+
+import re
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from ddp.errors import DDPError
+from ddp.suite.spec import RunSpec
+from ddp.suite.store import read_complete
+
+__all__ = ["Deadline", "SuiteTimeLimit", "estimate_seconds", "parse_duration", "stored_results", "EXIT_TIME_LIMIT"]
+
+EXIT_TIME_LIMIT = 75  # sysexits.h EX_TEMPFAIL: "temporary failure, user is invited to retry"
+
+_DURATION = re.compile(r"(?:(\d+(?:\.\d+)?)h)?(?:(\d+(?:\.\d+)?)m)?(?:(\d+(?:\.\d+)?)s)?")
+
+
+def parse_duration(text: str) -> float:
+    """Seconds in ``text``: ``5400``, ``90m``, ``1h30m``, ``1.5h``, ``2h5m30s``; anything else raises one line."""
+    value = str(text).strip().lower()
+    try:
+        seconds = float(value)
+    except ValueError:
+        found = _DURATION.fullmatch(value) if value else None
+        if found is None or not any(found.groups()):
+            raise DDPError(f"--time-limit: cannot read {text!r} as a duration (e.g. 5400, 90m, 1h30m, 2h5m30s)") from None
+        h, m, s = (float(g) if g else 0.0 for g in found.groups())
+        seconds = 3600 * h + 60 * m + s
+    if not seconds > 0:
+        raise DDPError(f"--time-limit must be positive, got {text!r}")
+    return seconds
+
+
+def _full_cost(result: dict) -> float | None:
+    """What a stored run cost from scratch: training (all of it) + its protocols, or its wall time if longer."""
+    train = (result.get("train") or {}).get("seconds")
+    evals = sum(float((p or {}).get("seconds") or 0.0) for p in (result.get("protocols") or {}).values())
+    wall = result.get("wall_seconds")
+    parts = [float(train) + evals] if train is not None else []
+    parts += [float(wall)] if wall is not None else []
+    return max(parts) if parts else None
+
+
+def stored_results(results_dir: str | Path) -> list[dict]:
+    """Every complete run result in a suite's results folder, whatever recipe made it."""
+    return [r for r in (read_complete(p) for p in sorted(Path(results_dir).glob("*.json"))) if r is not None]
+
+
+def _checkpoint_step(run: RunSpec) -> int | None:
+    """The step of the checkpoint this run would resume, or None (none, unreadable, or one set aside)."""
+    from ddp.checkpoint import load_checkpoint
+    from ddp.suite.superseded import superseded
+    from ddp.train import LAST
+
+    out = Path(run.recipe["train"]["output_dir"])
+    if not (out / LAST).is_file() or superseded(out, run.recipe, run.run_id) is not None:
+        return None
+    try:
+        step = load_checkpoint(out / LAST, mmap=True).get("step")
+    except (DDPError, OSError):
+        return None
+    return int(step) if isinstance(step, int) else None
+
+
+def estimate_seconds(run: RunSpec, stored: list[dict]) -> tuple[float | None, str]:
+    """The expected wall time of ``run`` from the ``stored`` results of its suite, and where it comes from."""
+    if run.reevaluate:
+        own = next((r for r in stored if r.get("run_id") == run.run_id), None)
+        secs = [float(((own or {}).get("protocols") or {}).get(p, {}).get("seconds") or 0.0) for p in run.reevaluate]
+        return (sum(secs), "its stored evaluation of those protocols") if own and any(secs) else (None, "nothing stored")
+    same_task = [r for r in stored if r.get("method") == run.method and r.get("task") == run.task]
+    pool, what = (same_task, f"{run.task} {run.method}") if same_task else (
+        [r for r in stored if r.get("method") == run.method], f"{run.method}")
+    costs = [c for c in (_full_cost(r) for r in pool) if c is not None]
+    if not costs:
+        return None, f"no stored {run.method} run"
+    full = statistics.median(costs)
+    source = f"median of {len(costs)} stored {what} run{'s' if len(costs) > 1 else ''}"
+    budget, step = run.recipe.get("train", {}).get("max_steps"), _checkpoint_step(run)
+    if step and isinstance(budget, int) and budget > 0:
+        trains = [float(r["train"]["seconds"]) for r in pool if (r.get("train") or {}).get("seconds") is not None]
+        train = statistics.median(trains) if trains else 0.0
+        full -= train * min(step, budget) / budget
+        source += f", less the {min(step, budget)} of {budget} steps its checkpoint has done"
+    return max(full, 0.0), source
+
+
+@dataclass
+class Deadline:
+    """A wall-clock end (``time.time()``: the same in every process of this machine)."""
+
+    end: float
+
+    @classmethod
+    def after(cls, seconds: float) -> Deadline:
+        return cls(time.time() + seconds)
+
+    def left(self) -> float:
+        return self.end - time.time()
+
+    def allows(self, expected: float | None) -> bool:
+        """Whether a run expected to take ``expected`` seconds (None: unknown) may start now."""
+        left = self.left()
+        return left > 0 and (expected is None or expected <= left)
+
+
+def fmt_minutes(seconds: float | None) -> str:
+    """``unknown``, ``45 s`` (under two minutes) or ``19 min``."""
+    if seconds is None:
+        return "unknown"
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
+
+
+class SuiteTimeLimit(DDPError):
+    """The time limit came: ``stopped`` runs were stopped (a training run saved its checkpoint), ``skipped``
+    ones did not start (run id -> expected seconds, None: unknown); ``done`` holds every stored result."""
+
+    def __init__(self, limit: float, stopped: list[str], skipped: dict[str, float | None], done: dict[str, dict]):
+        self.limit, self.stopped, self.skipped, self.done = limit, stopped, skipped, done
+        parts = []
+        if stopped:
+            parts.append(f"stopped {len(stopped)} run(s) in progress ({', '.join(stopped)}; a training run saved "
+                         "its checkpoint)")
+        if skipped:
+            parts.append(f"left {len(skipped)} not started (expected " + ", ".join(
+                f"{k}: {fmt_minutes(v)}" for k, v in skipped.items()) + ")")
+        super().__init__(f"time limit of {fmt_minutes(limit)} reached: " + "; ".join(parts or ["nothing left undone"])
+                         + "; run the same command again to go on")
