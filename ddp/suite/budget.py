@@ -3,15 +3,15 @@
 A cluster job or a lent machine has a wall-clock limit; a run killed at that limit loses whatever it had not
 checkpointed, and one started ten minutes before it wastes those ten minutes. With a time limit the suite:
 
-* estimates each run's cost from what this suite's stored results cost (:func:`estimate_seconds`): the
-  median over the stored runs of the same task and method, else of the same method, of training time (all
-  of it, across resumes) plus evaluation time, or the run's wall time where that is longer; a run that
-  resumes a checkpoint pays only the training steps still to go; one that re-evaluates pays only those
-  protocols' evaluation;
-* starts a run only if that estimate fits in the time left (a run with nothing to estimate from starts
-  while any time is left), checked when a worker takes the run and estimated again then from the results
-  stored by that time (on Ray, the estimate made at submission), so that a shorter run later in the queue
-  can still use the end of the budget;
+* estimates each run's cost from what this suite's stored results cost (:func:`estimate_seconds`), from
+  the stored runs of the same task and method, else of the same method: their median training time per
+  step times the steps the run still has to train (a run resuming a checkpoint pays only those), plus their
+  median evaluation and setup time; a re-evaluation pays only its protocols;
+* starts a run only if that estimate fits in the time left, checked when a worker takes the run and
+  estimated again then from the results stored by that time (on Ray, the estimate made at submission), so
+  that a shorter run later in the queue can still use the end of the budget. A run with nothing to estimate
+  from starts while any time is left, and so does one expected to take longer than the whole limit (it needs
+  several budgets whatever happens: its checkpoint carries it over, and the next budget sees it resume);
 * at the limit stops the runs still going as SIGTERM would (a training run saves its checkpoint), stores
   what finished, writes the table and exits with status 75 (``EX_TEMPFAIL``: run the same command again to
   go on); :class:`SuiteTimeLimit` lists what was stopped and what did not start.
@@ -19,8 +19,10 @@ checkpointed, and one started ten minutes before it wastes those ten minutes. Wi
 
 from __future__ import annotations
 
+import math
 import re
 import statistics
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,8 +49,8 @@ def parse_duration(text: str) -> float:
             raise DDPError(f"--time-limit: cannot read {text!r} as a duration (e.g. 5400, 90m, 1h30m, 2h5m30s)") from None
         h, m, s = (float(g) if g else 0.0 for g in found.groups())
         seconds = 3600 * h + 60 * m + s
-    if not seconds > 0:
-        raise DDPError(f"--time-limit must be positive, got {text!r}")
+    if not 0 < seconds < threading.TIMEOUT_MAX or not math.isfinite(seconds):
+        raise DDPError(f"--time-limit must be a positive, finite duration, got {text!r}")
     return seconds
 
 
@@ -69,41 +71,80 @@ def stored_results(results_dir: str | Path) -> list[dict]:
 
 def _checkpoint_step(run: RunSpec) -> int | None:
     """The step of the checkpoint this run would resume, or None (none, unreadable, or one set aside)."""
+    out = Path(run.recipe["train"]["output_dir"])
+    if not (out / "last.pt").is_file():  # the common case, before importing what reading one needs
+        return None
     from ddp.checkpoint import load_checkpoint
     from ddp.suite.superseded import superseded
-    from ddp.train import LAST
 
-    out = Path(run.recipe["train"]["output_dir"])
-    if not (out / LAST).is_file() or superseded(out, run.recipe, run.run_id) is not None:
+    if superseded(out, run.recipe, run.run_id) is not None:
         return None
     try:
-        step = load_checkpoint(out / LAST, mmap=True).get("step")
+        step = load_checkpoint(out / "last.pt", mmap=True).get("step")
     except (DDPError, OSError):
         return None
     return int(step) if isinstance(step, int) else None
 
 
+def _eval_seconds(result: dict, protocol: str) -> float | None:
+    value = ((result.get("protocols") or {}).get(protocol) or {}).get("seconds")
+    return None if value is None else float(value)
+
+
+def _reevaluation(run: RunSpec, stored: list[dict]) -> tuple[float | None, str]:
+    """Re-evaluating ``run.reevaluate``: each protocol's stored time on this run, else its median over the
+    method's other stored runs."""
+    own = next((r for r in stored if r.get("run_id") == run.run_id), {})
+    total, borrowed = 0.0, []
+    for protocol in run.reevaluate:
+        secs = _eval_seconds(own, protocol)
+        if secs is None:
+            others = [v for v in (_eval_seconds(r, protocol) for r in stored if r.get("method") == run.method)
+                      if v is not None]
+            if not others:
+                return None, f"no stored {run.method} run evaluated {protocol}"
+            secs = statistics.median(others)
+            borrowed.append(protocol)
+        total += secs
+    why = "its stored evaluation of those protocols"
+    return total, why + (f" ({', '.join(borrowed)}: the median of the stored {run.method} runs)" if borrowed else "")
+
+
 def estimate_seconds(run: RunSpec, stored: list[dict]) -> tuple[float | None, str]:
-    """The expected wall time of ``run`` from the ``stored`` results of its suite, and where it comes from."""
+    """The expected wall time of ``run`` from the ``stored`` results of its suite, and where it comes from.
+
+    From the stored runs of the same task and method (else of the same method): the median training time per
+    step times the steps this run still has to train (its ``train.max_steps``, less its checkpoint's step),
+    plus the median of the rest (evaluation, and setup such as demos or calibration: wall time less training
+    and evaluation). Without a step budget in the recipe or step counts in the results, the median of the
+    whole runs' cost, unscaled."""
     if run.reevaluate:
-        own = next((r for r in stored if r.get("run_id") == run.run_id), None)
-        secs = [float(((own or {}).get("protocols") or {}).get(p, {}).get("seconds") or 0.0) for p in run.reevaluate]
-        return (sum(secs), "its stored evaluation of those protocols") if own and any(secs) else (None, "nothing stored")
+        return _reevaluation(run, stored)
     same_task = [r for r in stored if r.get("method") == run.method and r.get("task") == run.task]
     pool, what = (same_task, f"{run.task} {run.method}") if same_task else (
         [r for r in stored if r.get("method") == run.method], f"{run.method}")
     costs = [c for c in (_full_cost(r) for r in pool) if c is not None]
     if not costs:
         return None, f"no stored {run.method} run"
-    full = statistics.median(costs)
-    source = f"median of {len(costs)} stored {what} run{'s' if len(costs) > 1 else ''}"
-    budget, step = run.recipe.get("train", {}).get("max_steps"), _checkpoint_step(run)
-    if step and isinstance(budget, int) and budget > 0:
-        trains = [float(r["train"]["seconds"]) for r in pool if (r.get("train") or {}).get("seconds") is not None]
-        train = statistics.median(trains) if trains else 0.0
-        full -= train * min(step, budget) / budget
-        source += f", less the {min(step, budget)} of {budget} steps its checkpoint has done"
-    return max(full, 0.0), source
+    source = f"{len(costs)} stored {what} run{'s' if len(costs) > 1 else ''}"
+    per_step, rest = [], []
+    for r in pool:
+        train = r.get("train") or {}
+        if not (train.get("seconds") and train.get("steps")):
+            continue
+        per_step.append(float(train["seconds"]) / int(train["steps"]))
+        evals = sum(v for v in (_eval_seconds(r, p) for p in (r.get("protocols") or {})) if v is not None)
+        setup = float(r["wall_seconds"]) - float(train["seconds"]) - evals if r.get("wall_seconds") is not None else 0
+        rest.append(evals + max(setup, 0.0))
+    budget = run.recipe.get("train", {}).get("max_steps")
+    if not per_step or not isinstance(budget, int) or budget <= 0:
+        return statistics.median(costs), f"median of {source}"
+    step = min(_checkpoint_step(run) or 0, budget)
+    to_go = budget - step
+    expected = statistics.median(per_step) * to_go + statistics.median(rest)
+    source += f": {statistics.median(per_step):.3g} s/step x {to_go} steps"
+    source += f" (its checkpoint is at {step})" if step else ""
+    return expected, source + f" + {fmt_minutes(statistics.median(rest))} evaluation and setup"
 
 
 @dataclass
@@ -119,10 +160,12 @@ class Deadline:
     def left(self) -> float:
         return self.end - time.time()
 
-    def allows(self, expected: float | None) -> bool:
-        """Whether a run expected to take ``expected`` seconds (None: unknown) may start now."""
+    def allows(self, expected: float | None, limit: float | None = None) -> bool:
+        """Whether a run expected to take ``expected`` seconds (None: unknown) may start now: while time is left,
+        if it fits in that time, or if it could not fit in a whole ``limit`` anyway (it needs several budgets
+        whatever happens; its checkpoint carries it over, and the next budget sees it resuming)."""
         left = self.left()
-        return left > 0 and (expected is None or expected <= left)
+        return left > 0 and (expected is None or expected <= left or (limit is not None and expected > limit))
 
 
 def fmt_minutes(seconds: float | None) -> str:

@@ -162,11 +162,14 @@ STOP_GRACE_SECONDS = 300  # an interrupted pool waits this long for its runs to 
 
 
 def _init_worker(stop) -> None:
-    """A pool worker: Ctrl-C is the suite's to handle (it passes SIGTERM on to a running run)."""
+    """A pool worker: Ctrl-C is the suite's to handle (it passes SIGTERM on to a running run). SIGTERM stops the
+    run in progress (see :func:`_pool_run`) and leaves an idle worker alone: a worker that died of it would
+    break the pool, whose clean-up then terminates the other workers too, maybe before their runs saved."""
     global _STOP
     _STOP = stop
     process_code()  # the code this worker imports now is what its runs will run
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda signum, frame: None)  # a handler, not SIG_IGN: stop_signals replaces it
 
 
 class NotStarted:
@@ -186,32 +189,34 @@ def _expected_now(run: RunSpec, expected: float | None, results_dir: str | None)
 
 
 def _start_or_not(run: RunSpec, threads: int | None, end: float | None, expected: float | None, cwd=None,
-                  results_dir: str | None = None):
+                  results_dir: str | None = None, limit: float | None = None):
     """``execute_run``, unless a deadline (``end``, wall clock) leaves less time than the run is expected to take
-    (re-estimated from ``results_dir`` if given)."""
+    (re-estimated from ``results_dir`` if given; see :meth:`Deadline.allows` for ``limit``)."""
     if end is not None:
         expected = _expected_now(run, expected, results_dir)
-        if not Deadline(end).allows(expected):
+        if not Deadline(end).allows(expected, limit):
             return NotStarted(expected)
     return execute_run(run, threads, cwd)
 
 
 def _pool_run(run: RunSpec, threads: int | None, end: float | None = None, expected: float | None = None,
-              results_dir: str | None = None):
-    """A pool worker's run; None without running once the suite is stopping (a queued run does not start)."""
+              results_dir: str | None = None, limit: float | None = None):
+    """A pool worker's run; None without running once the suite is stopping (a queued run does not start).
+    SIGTERM raises Preempted anywhere in it (setup, training: a checkpoint, evaluation)."""
     if _STOP is not None and _STOP.is_set():
         return None
-    return _start_or_not(run, threads, end, expected, results_dir=results_dir)
+    with stop_signals():
+        return _start_or_not(run, threads, end, expected, results_dir=results_dir, limit=limit)
 
 
 class SuiteRunsFailed(DDPError):
     """Some runs of a suite raised; the others finished and are stored (``done``)."""
 
-    def __init__(self, failed: dict[str, str], done: dict[str, dict]):
+    def __init__(self, failed: dict[str, str], done: dict[str, dict], also: str = ""):
         self.failed, self.done = failed, done
         names = ", ".join(failed)
         super().__init__(f"{len(failed)} run(s) failed: {names} (the traceback is in each run's log.txt; "
-                         "the suite skips the finished runs when started again)")
+                         "the suite skips the finished runs when started again)" + (f"; also {also}" if also else ""))
 
 
 def _fmt(seconds: float) -> str:
@@ -243,17 +248,16 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
          f"{len(todo)} to run ({how}" + (f"; {redo} re-evaluating {', '.join(reevaluate)}" if redo else "") + ")")
     if not todo:
         return done
-    deadline = Deadline.after(time_limit) if time_limit else None
-    expected: dict[str, float | None] = {}
+    limit = _Limit(time_limit, {}, [], None, suite.results_dir)
+    expected, stopped, deadline = limit.expected, limit.stopped, limit.deadline
     if deadline is not None:
         stored = stored_results(suite.results_dir)
-        expected = {r.run_id: estimate_seconds(r, stored)[0] for r in todo}
+        expected.update({r.run_id: estimate_seconds(r, stored)[0] for r in todo})
         known = [v for v in expected.values() if v is not None]
         echo(f"time limit {fmt_minutes(time_limit)}: the {len(todo)} runs are expected to take "
              f"{fmt_minutes(sum(known))} one after another" + (f", {len(todo) - len(known)} of them without an "
              "estimate (no stored run of their method)" if len(known) < len(todo) else "")
-             + "; a run starts only if it fits in the time left")
-    stopped: list[str] = []
+             + "; a run starts only if it fits in the time left (or could never fit in the whole limit)")
     skipped: dict[str, float | None] = {}
     bar = tqdm(total=len(suite.runs), initial=len(done), desc=f"suite {suite.name}", unit="run", disable=not progress)
 
@@ -280,7 +284,7 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
         left = deadline.left() if deadline is not None else 0.0
         say(f"not started {run.run_id}: expected {fmt_minutes(expect)}, {fmt_minutes(max(left, 0.0))} left")
 
-    limit = _Limit(deadline, expected, stopped, not_started, suite.results_dir)
+    limit.not_started = not_started
     try:
         if ray:
             _run_on_ray(todo, finished, failure, ray=ray, threads=threads or 1, gpus=gpus_per_run, echo=echo,
@@ -291,10 +295,11 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
             _run_on_pool(todo, finished, failure, workers=workers, threads=threads, echo=echo, limit=limit)
     finally:
         bar.close()
-    if failed:
-        raise SuiteRunsFailed(failed, done)
-    if stopped or skipped:
-        raise SuiteTimeLimit(time_limit, stopped, skipped, done)
+    undone = SuiteTimeLimit(time_limit, stopped, skipped, done) if stopped or skipped else None
+    if failed:  # a failed run decides the exit status; the time limit's account goes with it
+        raise SuiteRunsFailed(failed, done, also=str(undone) if undone else "")
+    if undone is not None:
+        raise undone
     return done
 
 
@@ -302,8 +307,10 @@ class _Limit:
     """What the executors need of a time limit: the deadline (None: no limit), each run's expected seconds,
     and where to note the runs stopped at the limit and those not started."""
 
-    def __init__(self, deadline: Deadline | None, expected: dict, stopped: list[str], not_started, results_dir):
-        self.deadline, self.expected, self.stopped, self.not_started = deadline, expected, stopped, not_started
+    def __init__(self, seconds: float | None, expected: dict, stopped: list[str], not_started, results_dir):
+        self.seconds = seconds
+        self.deadline = Deadline.after(seconds) if seconds else None
+        self.expected, self.stopped, self.not_started = expected, stopped, not_started
         self.results_dir = str(results_dir)
 
     @property
@@ -315,64 +322,73 @@ class _Limit:
         if self.deadline is None:
             return True
         self.expected[run.run_id] = _expected_now(run, self.expected.get(run.run_id), self.results_dir)
-        return self.deadline.allows(self.expected[run.run_id])
-
-
-@contextlib.contextmanager
-def _sigterm_at(deadline: Deadline | None):
-    """Within the block, SIGTERM reaches this process at the deadline; yields an event set when it did."""
-    import threading
-
-    fired = threading.Event()
-
-    def fire() -> None:
-        fired.set()
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    timer = None if deadline is None else threading.Timer(max(deadline.left(), 0.0), fire)
-    if timer is not None:
-        timer.daemon = True
-        timer.start()
-    try:
-        yield fired
-    finally:
-        if timer is not None:
-            timer.cancel()
+        return self.deadline.allows(self.expected[run.run_id], self.seconds)
 
 
 def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None, echo, limit: _Limit) -> None:
-    """One run after another in this process. At the time limit this process sends itself SIGTERM: the run in
-    progress stops as it would for a scheduler (a training run saves its checkpoint)."""
+    """One run after another in this process. At the time limit this process sends itself SIGTERM if a run is in
+    progress: it stops as it would for a scheduler (a training run saves its checkpoint); results are stored with
+    signals held back, so a stored result is whole."""
+    import threading
+
     handled: set[str] = set()
-    current = None
-    with _sigterm_at(limit.deadline) as fired, stop_signals():
+    state = {"run": None}  # the run in progress
+    guard, fired = threading.Lock(), threading.Event()
+
+    def fire() -> None:  # the timer thread, at the deadline
+        with guard:
+            fired.set()
+            if state["run"] is not None:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    timer = None
+    if limit.deadline is not None:
+        if threading.current_thread() is not threading.main_thread() or \
+                signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+            echo("the time limit decides which runs start; it cannot stop one in progress here (not the main "
+                 "thread, or SIGTERM ignored)")
+        else:
+            timer = threading.Timer(max(limit.deadline.left(), 0.0), fire)
+            timer.daemon = True
+    with stop_signals():
         try:
-            for run in todo:
-                if not limit.allows(run):
-                    limit.not_started(run, limit.expected.get(run.run_id))
-                    handled.add(run.run_id)
-                    continue
-                echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
-                current = run
-                try:
-                    result = execute_run(run, threads)
-                except Exception as err:  # the next run still runs; KeyboardInterrupt / Preempted stop the suite
-                    failure(run, err)
-                    current = None
-                    handled.add(run.run_id)
-                    continue
-                current = None
-                with signals_deferred() as received:  # a result being stored is stored whole
-                    finished(run, result)
-                handled.add(run.run_id)
-                if received:
-                    raise Preempted(received[0])
+            if timer is not None:
+                timer.start()
+            try:
+                for run in todo:
+                    if fired.is_set() or not limit.allows(run):
+                        limit.not_started(run, limit.expected.get(run.run_id))
+                        handled.add(run.run_id)
+                        continue
+                    echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
+                    with guard:
+                        state["run"] = run
+                    try:
+                        result = execute_run(run, threads)
+                    except Exception as err:  # the next run still runs; KeyboardInterrupt / Preempted stop it
+                        with signals_deferred() as received, guard:
+                            state["run"] = None
+                            failure(run, err)
+                            handled.add(run.run_id)
+                        if received:
+                            raise Preempted(received[0]) from None
+                        continue
+                    with signals_deferred() as received, guard:  # a result being stored is stored whole
+                        state["run"] = None
+                        finished(run, result)
+                        handled.add(run.run_id)
+                    if received:
+                        raise Preempted(received[0])
+            finally:
+                if timer is not None:
+                    timer.cancel()
+                    timer.join()
         except Preempted:
             if not fired.is_set():
                 raise
-            if current is not None:
-                limit.stopped.append(current.run_id)
-                handled.add(current.run_id)
+            if state["run"] is not None:
+                limit.stopped.append(state["run"].run_id)
+                handled.add(state["run"].run_id)
             for run in todo:
                 if run.run_id not in handled:
                     limit.not_started(run, limit.expected.get(run.run_id))
@@ -402,13 +418,19 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
             for run in todo:
                 echo(f"queued {run.run_id} ({per} threads; log: {run.recipe['train']['output_dir']}/log.txt)")
                 futures[pool.submit(_pool_run, run, per, limit.end, limit.expected.get(run.run_id),
-                                    limit.results_dir)] = run
-            try:
-                left = None if limit.deadline is None else max(limit.deadline.left(), 0.0)
-                for fut in as_completed(futures, timeout=left):
-                    seen.add(fut)
-                    _collect(fut, futures[fut], finished, failure, limit)
-            except FuturesTimeout:  # the time limit: stop as for SIGTERM, then say what became of each run
+                                    limit.results_dir, limit.seconds)] = run
+            left = None if limit.deadline is None else max(limit.deadline.left(), 0.0)
+            arrivals = as_completed(futures, timeout=left)
+            while True:
+                try:
+                    fut = next(arrivals)
+                except StopIteration:
+                    break
+                except FuturesTimeout:  # the time limit (only as_completed's own timeout lands here)
+                    break
+                seen.add(fut)
+                _collect(fut, futures[fut], finished, failure, limit)
+            if len(seen) < len(futures):  # the time limit: stop as for SIGTERM, then say what became of each run
                 _stop_pool(pool, stop, futures)
                 for fut, run in futures.items():
                     if fut in seen:
@@ -492,16 +514,18 @@ def _run_on_ray(todo: list[RunSpec], finished, failure, *, ray, threads: int, gp
         ray_mod.init(address=address, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
     try:
         task = ray_mod.remote(num_cpus=threads, num_gpus=gpus, max_retries=0)(_start_or_not)
-        pending = {}
+        pending, logged = {}, {}
         for run in todo:
             echo(f"queued {run.run_id} ({threads} CPUs{f', {gpus:g} GPUs' if gpus else ''}; "
                  f"log: {run.recipe['train']['output_dir']}/log.txt)")
-            pending[task.remote(run, threads, limit.end, limit.expected.get(run.run_id), os.getcwd())] = run
+            logged[run.run_id] = _log_size(run)  # what its log held before this attempt
+            pending[task.remote(run, threads, limit.end, limit.expected.get(run.run_id), os.getcwd(), None,
+                                limit.seconds)] = run
         while pending:
             left = None if limit.deadline is None else max(limit.deadline.left(), 0.0)
             ready, _ = ray_mod.wait(list(pending), num_returns=1, timeout=left)
             if not ready:  # the time limit
-                _cancel_ray(ray_mod, pending, finished, failure, limit)
+                _cancel_ray(ray_mod, pending, finished, failure, limit, logged)
                 return
             for ref in ready:
                 _collect_ray(ray_mod, ref, pending.pop(ref), finished, failure, limit)
@@ -522,9 +546,24 @@ def _collect_ray(ray_mod, ref, run: RunSpec, finished, failure, limit: _Limit) -
         finished(run, result)
 
 
-def _cancel_ray(ray_mod, pending: dict, finished, failure, limit: _Limit) -> None:
+def _log_size(run: RunSpec) -> int:
+    log = Path(run.recipe["train"]["output_dir"]) / "log.txt"
+    return log.stat().st_size if log.is_file() else 0
+
+
+def _started_since(run: RunSpec, offset: int) -> bool:
+    """Whether ``run``'s log gained the start line ``execute_run`` writes since it held ``offset`` bytes."""
+    log = Path(run.recipe["train"]["output_dir"]) / "log.txt"
+    if not log.is_file():
+        return False
+    with open(log, "rb") as f:
+        f.seek(offset)
+        return f"== {run.run_id} started".encode() in f.read()
+
+
+def _cancel_ray(ray_mod, pending: dict, finished, failure, limit: _Limit, logged: dict[str, int]) -> None:
     """Cancel every pending task, give the running ones ``STOP_GRACE_SECONDS`` to save, then say what became of
-    each: finished meanwhile, stopped (its log ends with the stop line ``execute_run`` writes) or not started."""
+    each: finished meanwhile, stopped (its log shows it started in this attempt) or not started."""
     for ref in pending:
         ray_mod.cancel(ref)
     ray_mod.wait(list(pending), num_returns=len(pending), timeout=STOP_GRACE_SECONDS)
@@ -537,9 +576,7 @@ def _cancel_ray(ray_mod, pending: dict, finished, failure, limit: _Limit) -> Non
             if not isinstance(err, halted) and not isinstance(cause, KeyboardInterrupt):
                 failure(run, cause or err)  # it had failed on its own
                 continue
-            log = Path(run.recipe["train"]["output_dir"]) / "log.txt"  # cancelled, interrupted or not back in time
-            lines = log.read_text().strip().splitlines() if log.is_file() else []
-            if lines and lines[-1].startswith(f"== {run.run_id} stopped"):
+            if _started_since(run, logged.get(run.run_id, 0)):  # cancelled, interrupted or not back in time
                 limit.stopped.append(run.run_id)
             else:
                 limit.not_started(run, limit.expected.get(run.run_id))
