@@ -68,6 +68,12 @@ def test_estimates_come_from_the_suites_stored_runs(suite_file):
     bare = [{**r, "train": {"seconds": r["train"]["seconds"]}} for r in stored]
     assert estimate_seconds(runs["far__ddp__seed1"], bare) == (250.0, "median of 1 stored far ddp run")
 
+    # a stored run that resumed: its setup is its last attempt's wall time less that attempt's own training
+    far_dp3 = runs["far__dp3__seed0"]
+    resumed = _fake_result(far_dp3, 1000.0, [50.0], 400.0)
+    resumed["train"]["attempt_seconds"] = 50.0  # 300 s of setup (demos, calibration) in the last attempt
+    assert estimate_seconds(runs["far__dp3__seed1"], [resumed])[0] == pytest.approx(500.0 * 2 + 50.0 + 300.0)
+
     # one re-evaluating protocols pays their stored evaluation; one it never ran: the method's median
     again = dataclasses.replace(runs["near__ddp__seed0"], reevaluate=("p1",))
     assert estimate_seconds(again, stored)[0] == pytest.approx(20.0)
@@ -86,6 +92,7 @@ def test_a_run_that_could_never_fit_starts_while_time_is_left():
     assert fresh.allows(None, 10.0) and fresh.allows(8.0, 10.0) and fresh.allows(3600.0, 10.0)
     late = Deadline(time.time() + 5.0)
     assert not late.allows(8.0, 10.0) and late.allows(4.0, 10.0) and late.allows(11.0, 10.0)
+    assert late.allows(9.6, 10.0)  # within 5 % of the whole limit: no attempt would find that much time left
     assert not Deadline(time.time() - 1.0).allows(None, 10.0) and not Deadline(time.time() - 1).allows(11.0, 10.0)
 
 

@@ -134,7 +134,9 @@ def estimate_seconds(run: RunSpec, stored: list[dict]) -> tuple[float | None, st
             continue
         per_step.append(float(train["seconds"]) / int(train["steps"]))
         evals = sum(v for v in (_eval_seconds(r, p) for p in (r.get("protocols") or {})) if v is not None)
-        setup = float(r["wall_seconds"]) - float(train["seconds"]) - evals if r.get("wall_seconds") is not None else 0
+        # the last attempt's setup: its wall time less its own training (all of it in older results) and evaluation
+        attempt = float(train.get("attempt_seconds", train["seconds"]))
+        setup = float(r["wall_seconds"]) - attempt - evals if r.get("wall_seconds") is not None else 0.0
         rest.append(evals + max(setup, 0.0))
     budget = run.recipe.get("train", {}).get("max_steps")
     if not per_step or not isinstance(budget, int) or budget <= 0:
@@ -162,10 +164,14 @@ class Deadline:
 
     def allows(self, expected: float | None, limit: float | None = None) -> bool:
         """Whether a run expected to take ``expected`` seconds (None: unknown) may start now: while time is left,
-        if it fits in that time, or if it could not fit in a whole ``limit`` anyway (it needs several budgets
-        whatever happens; its checkpoint carries it over, and the next budget sees it resuming)."""
+        if it fits in that time, or if it could not fit in a whole ``limit`` anyway (within 5 % of it: it
+        needs several budgets whatever happens; its checkpoint carries it over, and the next budget sees
+        it resuming)."""
         left = self.left()
-        return left > 0 and (expected is None or expected <= left or (limit is not None and expected > limit))
+        # "longer than the whole limit" with slack: time goes before the first check (reading results, starting
+        # workers), and a run just under the limit would otherwise never find that much left in any attempt
+        never_fits = limit is not None and expected is not None and expected > 0.95 * limit
+        return left > 0 and (expected is None or expected <= left or never_fits)
 
 
 def fmt_minutes(seconds: float | None) -> str:

@@ -38,7 +38,7 @@ import traceback
 from pathlib import Path
 
 from ddp.errors import DDPError
-from ddp.preemption import Preempted, signals_deferred, stop_signals
+from ddp.preemption import Preempted, interruption, signals_deferred, stop_signals
 from ddp.suite.budget import Deadline, SuiteTimeLimit, estimate_seconds, fmt_minutes, stored_results
 from ddp.suite.provenance import code_version, process_code
 from ddp.suite.spec import RunSpec, SuiteSpec
@@ -119,7 +119,10 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
     return {
         "run_id": run.run_id, "suite": run.suite, "task": run.task, "method": run.method, "seed": run.seed,
         "benchmark": run.benchmark,
-        "train": {"steps": trained.steps, "seconds": trained.total_seconds, "loss": trained.loss},
+        # seconds: all training behind the checkpoint; attempt_seconds: this call's (the rest of wall_seconds is
+        # setup and evaluation, what a time limit's estimate needs)
+        "train": {"steps": trained.steps, "seconds": trained.total_seconds, "attempt_seconds": trained.seconds,
+                  "loss": trained.loss},
         "episodes": report["episodes"],
         "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
         "wall_seconds": time.perf_counter() - t0,
@@ -169,7 +172,9 @@ def _init_worker(stop) -> None:
     _STOP = stop
     process_code()  # the code this worker imports now is what its runs will run
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda signum, frame: None)  # a handler, not SIG_IGN: stop_signals replaces it
+    for signum in (signal.SIGTERM, signal.SIGHUP):  # a handler, not SIG_IGN: stop_signals replaces it in a run
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            signal.signal(signum, lambda signum, frame: None)
 
 
 class NotStarted:
@@ -203,9 +208,9 @@ def _pool_run(run: RunSpec, threads: int | None, end: float | None = None, expec
               results_dir: str | None = None, limit: float | None = None):
     """A pool worker's run; None without running once the suite is stopping (a queued run does not start).
     SIGTERM raises Preempted anywhere in it (setup, training: a checkpoint, evaluation)."""
-    if _STOP is not None and _STOP.is_set():
-        return None
-    with stop_signals():
+    with stop_signals():  # the suite sets its stop event before it signals: checked inside, no SIGTERM is missed
+        if _STOP is not None and _STOP.is_set():
+            return None
         return _start_or_not(run, threads, end, expected, results_dir=results_dir, limit=limit)
 
 
@@ -360,9 +365,13 @@ def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None,
                         limit.not_started(run, limit.expected.get(run.run_id))
                         handled.add(run.run_id)
                         continue
-                    echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
-                    with guard:
+                    with guard:  # the timer signals only a run in progress: it may not fire between check and start
+                        if fired.is_set():
+                            limit.not_started(run, limit.expected.get(run.run_id))
+                            handled.add(run.run_id)
+                            continue
                         state["run"] = run
+                    echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
                     try:
                         result = execute_run(run, threads)
                     except Exception as err:  # the next run still runs; KeyboardInterrupt / Preempted stop it
@@ -371,14 +380,14 @@ def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None,
                             failure(run, err)
                             handled.add(run.run_id)
                         if received:
-                            raise Preempted(received[0]) from None
+                            raise interruption(received[0]) from None
                         continue
                     with signals_deferred() as received, guard:  # a result being stored is stored whole
                         state["run"] = None
                         finished(run, result)
                         handled.add(run.run_id)
                     if received:
-                        raise Preempted(received[0])
+                        raise interruption(received[0])
             finally:
                 if timer is not None:
                     timer.cancel()
@@ -441,7 +450,7 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
                         limit.stopped.append(run.run_id)
                     else:
                         _collect(fut, run, finished, failure, limit, stopping=True)
-    except KeyboardInterrupt:
+    except BaseException:  # Ctrl-C, SIGTERM, or an error storing a result: no queued run starts after it
         _stop_pool(pool, stop, futures)
         raise
     else:
@@ -552,13 +561,15 @@ def _log_size(run: RunSpec) -> int:
 
 
 def _started_since(run: RunSpec, offset: int) -> bool:
-    """Whether ``run``'s log gained the start line ``execute_run`` writes since it held ``offset`` bytes."""
+    """Whether ``run``'s log gained the line a run or re-evaluation writes as it starts since it held ``offset``
+    bytes."""
     log = Path(run.recipe["train"]["output_dir"]) / "log.txt"
     if not log.is_file():
         return False
     with open(log, "rb") as f:
-        f.seek(offset)
-        return f"== {run.run_id} started".encode() in f.read()
+        f.seek(offset if log.stat().st_size >= offset else 0)  # a shorter log: a new one (its folder set aside)
+        text = f.read()
+    return any(f"== {run.run_id} {what}".encode() in text for what in ("started", "re-evaluating"))
 
 
 def _cancel_ray(ray_mod, pending: dict, finished, failure, limit: _Limit, logged: dict[str, int]) -> None:
