@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import fnmatch
 import os
 import sys
@@ -199,6 +200,7 @@ def cmd_detect(args) -> int:
 
 def cmd_suite(args) -> int:
     from ddp.suite import SuiteRunsFailed, load_suite, run_suite, select, write_suite_report
+    from ddp.suite.budget import EXIT_TIME_LIMIT, SuiteTimeLimit, estimate_seconds, fmt_minutes, parse_duration, stored_results
     from ddp.suite.reevaluate import plan_reevaluation
     from ddp.suite.store import ResultStore
     from ddp.suite.superseded import superseded
@@ -221,9 +223,13 @@ def cmd_suite(args) -> int:
         if args.report:
             raise DDPError("--reevaluate runs protocols; --report only aggregates what is stored")
         check_protocols(reevaluate, source="--reevaluate")
+    time_limit = parse_duration(args.time_limit) if args.time_limit is not None else None
+    if time_limit is not None and args.report:
+        raise DDPError("--time-limit limits the runs; --report only aggregates what is stored")
     if args.dry_run:
         store, counts = ResultStore(suite.results_dir), {"done": 0, "stale": 0, "missing": 0}
         again = {r.run_id for r in plan_reevaluation(store, chosen.runs, reevaluate)} if reevaluate else set()
+        stored, expected = stored_results(suite.results_dir), []
         resumes = retrains = 0
         for run in chosen.runs:
             state = store.status(run)
@@ -232,8 +238,10 @@ def cmd_suite(args) -> int:
             protocols = ",".join(run.protocols) if run.protocols else "the recipe's"
             what = f"{run.recipe['name']}, protocols {protocols}, -> {out}"
             if run.run_id in again:
+                cost, why = estimate_seconds(dataclasses.replace(run, reevaluate=tuple(reevaluate)), stored)
+                expected.append(cost)
                 print(f"{run.run_id}: stale, re-evaluates {', '.join(reevaluate)} from {out}/last.pt (keeps the "
-                      f"others); {what}")
+                      f"others); {what}; expected {fmt_minutes(cost)} ({why})")
                 continue
             found = state != "done" and (Path(out) / "last.pt").is_file()
             changed = superseded(out, run.recipe, args.suite) if found else None
@@ -245,22 +253,36 @@ def cmd_suite(args) -> int:
                           "will be set aside)")
             elif found:
                 label += f", resumes {out}/last.pt"
+            if state != "done":
+                cost, why = estimate_seconds(run, stored)
+                expected.append(cost)
+                what += f"; expected {fmt_minutes(cost)} ({why})"
             print(f"{run.run_id}: {label}; {what}")
+        known = [c for c in expected if c is not None]
+        cost = ""
+        if expected:
+            cost = (f"; expected {fmt_minutes(sum(known))} one after another"
+                    + (f" ({len(expected) - len(known)} run(s) without an estimate: no stored run of their method)"
+                       if len(known) < len(expected) else "")
+                    + (f", time limit {fmt_minutes(time_limit)}" if time_limit is not None else ""))
         print(f"{len(chosen.runs)} runs: {counts['done']} done, {counts['stale'] + counts['missing']} to run "
               f"({counts['stale']} stale, {resumes} resuming a checkpoint, {retrains} setting one aside"
-              + (f", {len(again)} re-evaluating" if reevaluate else "") + f"); results in {suite.results_dir}")
+              + (f", {len(again)} re-evaluating" if reevaluate else "") + f"); results in {suite.results_dir}" + cost)
         return 0
     failed = None
     if not args.report:
         ray = (args.ray or True) if args.ray is not None else False
         try:
             run_suite(chosen, workers=args.workers, threads=args.threads, progress=not args.quiet, ray=ray,
-                      gpus_per_run=args.gpus_per_run, reevaluate=reevaluate)
-        except SuiteRunsFailed as err:  # the table still shows what finished
+                      gpus_per_run=args.gpus_per_run, reevaluate=reevaluate, time_limit=time_limit)
+        except (SuiteRunsFailed, SuiteTimeLimit) as err:  # the table still shows what finished
             failed = err
     done = ResultStore(suite.results_dir).all(suite.runs)  # the table covers every stored run
     results = [done[r.run_id] for r in suite.runs if r.run_id in done]
     if not results:
+        if isinstance(failed, SuiteTimeLimit):
+            print(f"ddp: {failed} (no finished run yet: no table)", file=sys.stderr)
+            return EXIT_TIME_LIMIT
         if failed is not None:
             raise failed
         raise DDPError(f"no finished runs of suite {suite.name!r} in {suite.results_dir} yet")
@@ -268,6 +290,9 @@ def cmd_suite(args) -> int:
                                reference=suite.reference)
     print(paths[0].read_text(), end="")
     print(f"wrote {', '.join(str(p) for p in paths)}")
+    if isinstance(failed, SuiteTimeLimit):
+        print(f"ddp: {failed}", file=sys.stderr)
+        return EXIT_TIME_LIMIT
     if failed is not None:
         print(f"ddp: error: {failed}", file=sys.stderr)
         return 1
@@ -430,6 +455,10 @@ def make_parser() -> argparse.ArgumentParser:
                    help="bring stale runs up to date by re-evaluating only these comma-separated protocols from each "
                         "run's checkpoint, keeping the others (for a change in how runs are evaluated, e.g. the "
                         "detector: --reevaluate id_ddp,ood_ddp); missing runs still run in full")
+    p.add_argument("--time-limit", metavar="DURATION",
+                   help="wall-clock budget (e.g. 2h30m, 150m, 9000): start a run only if its expected time (from "
+                        "this suite's stored runs; --dry-run shows it) fits in the time left, stop the runs still "
+                        "going at the limit (a training run saves its checkpoint) and exit with status 75")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_suite)
 

@@ -1,8 +1,10 @@
+import copy
 import os
 from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,8 +69,6 @@ def runnable(**sections) -> dict:
 
     A mapping in ``sections`` updates that section; anything else replaces it.
     """
-    import copy
-
     r = copy.deepcopy(TINY)
     r["train"].update(max_steps=2, epochs=1)
     r["eval"] = {"episodes": 1, "protocols": ["id"], "max_steps": 16}
@@ -83,8 +83,6 @@ def runnable(**sections) -> dict:
 
 @pytest.fixture
 def tiny_recipe():
-    import copy
-
     return copy.deepcopy(TINY)
 
 
@@ -92,3 +90,29 @@ def tiny_recipe():
 def _threads():
     torch.set_num_threads(1)  # tiny models: 1 thread is faster and immune to busy-waiting OpenMP workers
     yield
+
+
+@pytest.fixture
+def suite_file(tmp_path, monkeypatch):
+    """A tiny suite: 2 tasks x 2 methods (DDP, DP3 by overlay) x 2 seeds, 2 training steps, 1 short episode."""
+    monkeypatch.chdir(tmp_path)
+    recipe = copy.deepcopy(TINY)
+    recipe["env"].update(displacement_chunk=1, displacement_delta=[0.2, 0.0, 0.0])
+    recipe["train"].update(max_steps=2, epochs=1)
+    recipe["eval"] = {"episodes": 1, "max_steps": 16}
+    recipe["controller"] = {"detector": {"name": "oracle"}, "tracker": {"name": "oracle"},
+                            "recovery": {"name": "target_specific"}}
+    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(recipe))
+    (tmp_path / "dp3.yaml").write_text("base: ignored.yaml\nname: ignored\nworld_model: {enabled: false}\n")
+    suite = {
+        "name": "tiny_suite",
+        "tasks": {"near": "tiny.yaml", "far": {"recipe": "tiny.yaml", "set": ["env.displacement_delta=[0.3, 0, 0]"],
+                                              "benchmark": "synthetic"}},
+        "methods": {"ddp": {}, "dp3": {"overlay": "dp3.yaml", "protocols": ["id", "ood_tracking"]}},
+        "seeds": [0, 1],
+        "protocols": ["id", "ood_base"],
+        "set": ["train.lr=0.002"],
+    }
+    path = tmp_path / "suite.yaml"
+    path.write_text(yaml.safe_dump(suite, sort_keys=False))
+    return path

@@ -205,6 +205,8 @@ CASES = [
     ("suite-report-nothing-yet", lambda t, tr: ["suite", write(t / "s.yaml", {"name": "s", "tasks": {"a": tr["recipe"]},
                                                                                   "results_dir": str(t / "res")}),
                                                 "--report"], "no finished runs of suite 's'"),
+    ("suite-bad-time-limit", lambda t, tr: ["suite", write(t / "s.yaml", {"name": "s", "tasks": {"a": tr["recipe"]}}),
+                                            "--time-limit", "2h3"], "--time-limit: cannot read '2h3' as a duration"),
 ]
 
 

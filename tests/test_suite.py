@@ -15,32 +15,6 @@ from ddp.suite import ResultStore, aggregate, load_suite, run_suite, select, wri
 from ddp.suite.report import wilson
 
 
-@pytest.fixture
-def suite_file(tmp_path, monkeypatch):
-    """A tiny suite: 2 tasks x 2 methods (DDP, DP3 by overlay) x 2 seeds, 2 training steps, 1 short episode."""
-    monkeypatch.chdir(tmp_path)
-    recipe = copy.deepcopy(TINY)
-    recipe["env"].update(displacement_chunk=1, displacement_delta=[0.2, 0.0, 0.0])
-    recipe["train"].update(max_steps=2, epochs=1)
-    recipe["eval"] = {"episodes": 1, "max_steps": 16}
-    recipe["controller"] = {"detector": {"name": "oracle"}, "tracker": {"name": "oracle"},
-                            "recovery": {"name": "target_specific"}}
-    (tmp_path / "tiny.yaml").write_text(yaml.safe_dump(recipe))
-    (tmp_path / "dp3.yaml").write_text("base: ignored.yaml\nname: ignored\nworld_model: {enabled: false}\n")
-    suite = {
-        "name": "tiny_suite",
-        "tasks": {"near": "tiny.yaml", "far": {"recipe": "tiny.yaml", "set": ["env.displacement_delta=[0.3, 0, 0]"],
-                                              "benchmark": "synthetic"}},
-        "methods": {"ddp": {}, "dp3": {"overlay": "dp3.yaml", "protocols": ["id", "ood_tracking"]}},
-        "seeds": [0, 1],
-        "protocols": ["id", "ood_base"],
-        "set": ["train.lr=0.002"],
-    }
-    path = tmp_path / "suite.yaml"
-    path.write_text(yaml.safe_dump(suite, sort_keys=False))
-    return path
-
-
 def test_expansion(suite_file):
     suite = load_suite(suite_file)
     assert [r.run_id for r in suite.runs] == [  # seed-major: every task and method once before repeats
@@ -117,7 +91,8 @@ def test_dry_run_says_which_runs_are_stored_stale_or_resume(suite_file, capsys):
     suite = load_suite(suite_file)
     done, stale, resumed = suite.runs[:3]
     store = ResultStore(suite.results_dir)
-    store.save(done, _result(done.task, done.method, done.seed, {"id": 1.0}))
+    store.save(done, {**_result(done.task, done.method, done.seed, {"id": 1.0}), "train": {"seconds": 600.0},
+                      "wall_seconds": 650.0})
     store.save(stale, _result(stale.task, stale.method, stale.seed, {"id": 1.0}))
     data = json.loads(store.path(stale).read_text())
     store.path(stale).write_text(json.dumps({**data, "recipe_hash": "0" * 16}))  # made for another recipe
@@ -130,7 +105,11 @@ def test_dry_run_says_which_runs_are_stored_stale_or_resume(suite_file, capsys):
     assert lines[1].startswith(f"{stale.run_id}: stale (its recipe changed: runs again);")
     assert lines[2].startswith(f"{resumed.run_id}: to run, resumes {resumed.recipe['train']['output_dir']}/last.pt;")
     assert lines[3].startswith(f"{suite.runs[3].run_id}: to run;")
+    assert lines[3].endswith("; expected unknown (no stored dp3 run)")  # what a time limit would go by
+    assert lines[4].endswith("; expected 11 min (median of 1 stored near ddp run)")
     assert lines[-1].startswith("8 runs: 1 done, 7 to run (1 stale, 1 resuming a checkpoint, 0 setting one aside)")
+    assert lines[-1].endswith("; expected 32 min one after another (4 run(s) without an estimate: no stored run of "
+                              "their method)")
     assert not (suite_file.parent / "runs/suites/tiny_suite/near__ddp__seed0/log.txt").exists()  # nothing ran
 
 

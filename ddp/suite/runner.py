@@ -17,6 +17,10 @@ it arrives, printing one line per run started and finished:
   the resources it has. Workers change to this working directory first: on a cluster every node
   needs the repository (and its data) at the same path.
 
+With a time limit (``time_limit``, ``ddp suite --time-limit``) every executor starts a run only if its
+expected cost fits in the time left and stops the runs still going at the limit, as SIGTERM would; the suite
+then raises :class:`~ddp.suite.budget.SuiteTimeLimit` (see :mod:`ddp.suite.budget`).
+
 A run that raises leaves its traceback in its ``log.txt``; the suite prints one line, goes on with the
 other runs and then raises :class:`SuiteRunsFailed` (``ddp suite`` still writes the table of what
 finished, and exits 1). A run is a pure function of its recipe and seed, so the executors give the
@@ -34,6 +38,8 @@ import traceback
 from pathlib import Path
 
 from ddp.errors import DDPError
+from ddp.preemption import Preempted, interruption, signals_deferred, stop_signals
+from ddp.suite.budget import Deadline, SuiteTimeLimit, estimate_seconds, fmt_minutes, stored_results
 from ddp.suite.provenance import code_version, process_code
 from ddp.suite.spec import RunSpec, SuiteSpec
 from ddp.suite.store import ResultStore
@@ -113,7 +119,10 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
     return {
         "run_id": run.run_id, "suite": run.suite, "task": run.task, "method": run.method, "seed": run.seed,
         "benchmark": run.benchmark,
-        "train": {"steps": trained.steps, "seconds": trained.total_seconds, "loss": trained.loss},
+        # seconds: all training behind the checkpoint; attempt_seconds: this call's (the rest of wall_seconds is
+        # setup and evaluation, what a time limit's estimate needs)
+        "train": {"steps": trained.steps, "seconds": trained.total_seconds, "attempt_seconds": trained.seconds,
+                  "loss": trained.loss},
         "episodes": report["episodes"],
         "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
         "wall_seconds": time.perf_counter() - t0,
@@ -156,28 +165,63 @@ STOP_GRACE_SECONDS = 300  # an interrupted pool waits this long for its runs to 
 
 
 def _init_worker(stop) -> None:
-    """A pool worker: Ctrl-C is the suite's to handle (it passes SIGTERM on to a running run)."""
+    """A pool worker: Ctrl-C is the suite's to handle (it passes SIGTERM on to a running run). SIGTERM stops the
+    run in progress (see :func:`_pool_run`) and leaves an idle worker alone: a worker that died of it would
+    break the pool, whose clean-up then terminates the other workers too, maybe before their runs saved."""
     global _STOP
     _STOP = stop
     process_code()  # the code this worker imports now is what its runs will run
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for signum in (signal.SIGTERM, signal.SIGHUP):  # a handler, not SIG_IGN: stop_signals replaces it in a run
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            signal.signal(signum, lambda signum, frame: None)
 
 
-def _pool_run(run: RunSpec, threads: int | None) -> dict | None:
-    """A pool worker's run; None without running once the suite is stopping (a queued run does not start)."""
-    if _STOP is not None and _STOP.is_set():
-        return None
-    return execute_run(run, threads)
+class NotStarted:
+    """A worker's answer for a run it did not start because it would not fit the time left."""
+
+    def __init__(self, expected: float | None):
+        self.expected = expected
+
+
+def _expected_now(run: RunSpec, expected: float | None, results_dir: str | None) -> float | None:
+    """The run's expected seconds from the results stored by now (runs finished since the suite started count),
+    else ``expected``, the estimate made when it was queued."""
+    if results_dir is None:
+        return expected
+    fresh = estimate_seconds(run, stored_results(results_dir))[0]
+    return expected if fresh is None else fresh
+
+
+def _start_or_not(run: RunSpec, threads: int | None, end: float | None, expected: float | None, cwd=None,
+                  results_dir: str | None = None, limit: float | None = None):
+    """``execute_run``, unless a deadline (``end``, wall clock) leaves less time than the run is expected to take
+    (re-estimated from ``results_dir`` if given; see :meth:`Deadline.allows` for ``limit``)."""
+    if end is not None:
+        expected = _expected_now(run, expected, results_dir)
+        if not Deadline(end).allows(expected, limit):
+            return NotStarted(expected)
+    return execute_run(run, threads, cwd)
+
+
+def _pool_run(run: RunSpec, threads: int | None, end: float | None = None, expected: float | None = None,
+              results_dir: str | None = None, limit: float | None = None):
+    """A pool worker's run; None without running once the suite is stopping (a queued run does not start).
+    SIGTERM raises Preempted anywhere in it (setup, training: a checkpoint, evaluation)."""
+    with stop_signals():  # the suite sets its stop event before it signals: checked inside, no SIGTERM is missed
+        if _STOP is not None and _STOP.is_set():
+            return None
+        return _start_or_not(run, threads, end, expected, results_dir=results_dir, limit=limit)
 
 
 class SuiteRunsFailed(DDPError):
     """Some runs of a suite raised; the others finished and are stored (``done``)."""
 
-    def __init__(self, failed: dict[str, str], done: dict[str, dict]):
+    def __init__(self, failed: dict[str, str], done: dict[str, dict], also: str = ""):
         self.failed, self.done = failed, done
         names = ", ".join(failed)
         super().__init__(f"{len(failed)} run(s) failed: {names} (the traceback is in each run's log.txt; "
-                         "the suite skips the finished runs when started again)")
+                         "the suite skips the finished runs when started again)" + (f"; also {also}" if also else ""))
 
 
 def _fmt(seconds: float) -> str:
@@ -187,10 +231,12 @@ def _fmt(seconds: float) -> str:
 
 def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None, progress: bool = True,
               echo=print, ray: bool | str = False, gpus_per_run: float = 0.0,
-              reevaluate: list[str] | None = None) -> dict[str, dict]:
+              reevaluate: list[str] | None = None, time_limit: float | None = None) -> dict[str, dict]:
     """Run what the store does not hold yet; return run_id -> result for every finished run. With
     ``reevaluate``, stale runs only re-evaluate those protocols from their checkpoints (see
-    :mod:`ddp.suite.reevaluate`); missing runs still run in full."""
+    :mod:`ddp.suite.reevaluate`); missing runs still run in full. With ``time_limit`` (seconds), runs start
+    only while they fit and stop at the limit (:mod:`ddp.suite.budget`); if that left any undone, raises
+    :class:`~ddp.suite.budget.SuiteTimeLimit` after storing what finished."""
     from tqdm import tqdm
 
     from ddp.suite.reevaluate import merge_reevaluation, plan_reevaluation
@@ -207,6 +253,17 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
          f"{len(todo)} to run ({how}" + (f"; {redo} re-evaluating {', '.join(reevaluate)}" if redo else "") + ")")
     if not todo:
         return done
+    limit = _Limit(time_limit, {}, [], None, suite.results_dir)
+    expected, stopped, deadline = limit.expected, limit.stopped, limit.deadline
+    if deadline is not None:
+        stored = stored_results(suite.results_dir)
+        expected.update({r.run_id: estimate_seconds(r, stored)[0] for r in todo})
+        known = [v for v in expected.values() if v is not None]
+        echo(f"time limit {fmt_minutes(time_limit)}: the {len(todo)} runs are expected to take "
+             f"{fmt_minutes(sum(known))} one after another" + (f", {len(todo) - len(known)} of them without an "
+             "estimate (no stored run of their method)" if len(known) < len(todo) else "")
+             + "; a run starts only if it fits in the time left (or could never fit in the whole limit)")
+    skipped: dict[str, float | None] = {}
     bar = tqdm(total=len(suite.runs), initial=len(done), desc=f"suite {suite.name}", unit="run", disable=not progress)
 
     say = bar.write if progress else echo  # a bar's own write keeps the line above the bar
@@ -227,35 +284,133 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
         failed[run.run_id] = f"{type(err).__name__}: {first}"
         say(f"failed {run.run_id}: {failed[run.run_id]} (log: {run.recipe['train']['output_dir']}/log.txt)")
 
+    def not_started(run: RunSpec, expect: float | None) -> None:
+        skipped[run.run_id] = expect
+        left = deadline.left() if deadline is not None else 0.0
+        say(f"not started {run.run_id}: expected {fmt_minutes(expect)}, {fmt_minutes(max(left, 0.0))} left")
+
+    limit.not_started = not_started
     try:
         if ray:
-            _run_on_ray(todo, finished, failure, ray=ray, threads=threads or 1, gpus=gpus_per_run, echo=echo)
+            _run_on_ray(todo, finished, failure, ray=ray, threads=threads or 1, gpus=gpus_per_run, echo=echo,
+                        limit=limit)
         elif workers == 1:
-            for run in todo:
-                echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
-                try:
-                    result = execute_run(run, threads)
-                except Exception as err:  # the next run still runs; KeyboardInterrupt / Preempted stop the suite
-                    failure(run, err)
-                    continue
-                finished(run, result)
+            _run_in_turn(todo, finished, failure, threads=threads, echo=echo, limit=limit)
         else:
-            _run_on_pool(todo, finished, failure, workers=workers, threads=threads, echo=echo)
+            _run_on_pool(todo, finished, failure, workers=workers, threads=threads, echo=echo, limit=limit)
     finally:
         bar.close()
-    if failed:
-        raise SuiteRunsFailed(failed, done)
+    undone = SuiteTimeLimit(time_limit, stopped, skipped, done) if stopped or skipped else None
+    if failed:  # a failed run decides the exit status; the time limit's account goes with it
+        raise SuiteRunsFailed(failed, done, also=str(undone) if undone else "")
+    if undone is not None:
+        raise undone
     return done
 
 
-def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, threads: int | None, echo) -> None:
-    """``workers`` spawned processes. Interrupted (Ctrl-C, SIGTERM, SIGHUP), the suite starts no queued run,
-    passes SIGTERM on to the runs in progress (a training run saves its checkpoint), waits for them, then stops:
-    no worker outlives it."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed, wait
+class _Limit:
+    """What the executors need of a time limit: the deadline (None: no limit), each run's expected seconds,
+    and where to note the runs stopped at the limit and those not started."""
 
-    from ddp.preemption import stop_signals
+    def __init__(self, seconds: float | None, expected: dict, stopped: list[str], not_started, results_dir):
+        self.seconds = seconds
+        self.deadline = Deadline.after(seconds) if seconds else None
+        self.expected, self.stopped, self.not_started = expected, stopped, not_started
+        self.results_dir = str(results_dir)
+
+    @property
+    def end(self) -> float | None:
+        return None if self.deadline is None else self.deadline.end
+
+    def allows(self, run: RunSpec) -> bool:
+        """Whether ``run`` may start now; its estimate is made again from the results stored by now."""
+        if self.deadline is None:
+            return True
+        self.expected[run.run_id] = _expected_now(run, self.expected.get(run.run_id), self.results_dir)
+        return self.deadline.allows(self.expected[run.run_id], self.seconds)
+
+
+def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None, echo, limit: _Limit) -> None:
+    """One run after another in this process. At the time limit this process sends itself SIGTERM if a run is in
+    progress: it stops as it would for a scheduler (a training run saves its checkpoint); results are stored with
+    signals held back, so a stored result is whole."""
+    import threading
+
+    handled: set[str] = set()
+    state = {"run": None}  # the run in progress
+    guard, fired = threading.Lock(), threading.Event()
+
+    def fire() -> None:  # the timer thread, at the deadline
+        with guard:
+            fired.set()
+            if state["run"] is not None:
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    timer = None
+    if limit.deadline is not None:
+        if threading.current_thread() is not threading.main_thread() or \
+                signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+            echo("the time limit decides which runs start; it cannot stop one in progress here (not the main "
+                 "thread, or SIGTERM ignored)")
+        else:
+            timer = threading.Timer(max(limit.deadline.left(), 0.0), fire)
+            timer.daemon = True
+    with stop_signals():
+        try:
+            if timer is not None:
+                timer.start()
+            try:
+                for run in todo:
+                    if fired.is_set() or not limit.allows(run):
+                        limit.not_started(run, limit.expected.get(run.run_id))
+                        handled.add(run.run_id)
+                        continue
+                    with guard:  # the timer signals only a run in progress: it may not fire between check and start
+                        if fired.is_set():
+                            limit.not_started(run, limit.expected.get(run.run_id))
+                            handled.add(run.run_id)
+                            continue
+                        state["run"] = run
+                    echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
+                    try:
+                        result = execute_run(run, threads)
+                    except Exception as err:  # the next run still runs; KeyboardInterrupt / Preempted stop it
+                        with signals_deferred() as received, guard:
+                            state["run"] = None
+                            failure(run, err)
+                            handled.add(run.run_id)
+                        if received:
+                            raise interruption(received[0]) from None
+                        continue
+                    with signals_deferred() as received, guard:  # a result being stored is stored whole
+                        state["run"] = None
+                        finished(run, result)
+                        handled.add(run.run_id)
+                    if received:
+                        raise interruption(received[0])
+            finally:
+                if timer is not None:
+                    timer.cancel()
+                    timer.join()
+        except Preempted:
+            if not fired.is_set():
+                raise
+            if state["run"] is not None:
+                limit.stopped.append(state["run"].run_id)
+                handled.add(state["run"].run_id)
+            for run in todo:
+                if run.run_id not in handled:
+                    limit.not_started(run, limit.expected.get(run.run_id))
+
+
+def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, threads: int | None, echo,
+                 limit: _Limit) -> None:
+    """``workers`` spawned processes. Interrupted (Ctrl-C, SIGTERM, SIGHUP) or at the time limit, the suite
+    starts no queued run, passes SIGTERM on to the runs in progress (a training run saves its checkpoint), waits
+    for them, then stops: no worker outlives it."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import TimeoutError as FuturesTimeout
 
     per = threads or max(1, (os.cpu_count() or 1) // workers)
     # several processes share the cores: OpenMP threads that spin between ops would steal them
@@ -266,36 +421,37 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
     stop = ctx.Event()
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(stop,))
     futures: dict = {}
+    seen: set = set()
     try:
         with stop_signals():  # SIGTERM / SIGHUP raise Preempted here, like Ctrl-C's KeyboardInterrupt
             for run in todo:
                 echo(f"queued {run.run_id} ({per} threads; log: {run.recipe['train']['output_dir']}/log.txt)")
-                futures[pool.submit(_pool_run, run, per)] = run
-            for fut in as_completed(futures):
+                futures[pool.submit(_pool_run, run, per, limit.end, limit.expected.get(run.run_id),
+                                    limit.results_dir, limit.seconds)] = run
+            left = None if limit.deadline is None else max(limit.deadline.left(), 0.0)
+            arrivals = as_completed(futures, timeout=left)
+            while True:
                 try:
-                    result = fut.result()
-                except Exception as err:
-                    failure(futures[fut], err)
-                    continue
-                if result is not None:
-                    finished(futures[fut], result)
-    except KeyboardInterrupt:
-        stop.set()  # a queued run that a worker takes now returns at once
-        workers_ = multiprocessing.active_children()  # the pool's workers
-        try:
-            for child in workers_:  # a run in training saves its checkpoint and stops
-                with contextlib.suppress(OSError):
-                    os.kill(child.pid, signal.SIGTERM)
-            for fut in futures:
-                fut.cancel()
-            wait([f for f in futures if not f.cancelled()], timeout=STOP_GRACE_SECONDS)
-        finally:  # a second Ctrl-C, or a grace period gone: no worker outlives the suite either way
-            pool.shutdown(wait=False, cancel_futures=True)
-            for child in workers_:
-                child.join(timeout=5)
-                if child.is_alive():
-                    child.kill()
-                    child.join(timeout=5)
+                    fut = next(arrivals)
+                except StopIteration:
+                    break
+                except FuturesTimeout:  # the time limit (only as_completed's own timeout lands here)
+                    break
+                seen.add(fut)
+                _collect(fut, futures[fut], finished, failure, limit)
+            if len(seen) < len(futures):  # the time limit: stop as for SIGTERM, then say what became of each run
+                _stop_pool(pool, stop, futures)
+                for fut, run in futures.items():
+                    if fut in seen:
+                        continue
+                    if fut.cancelled():  # still queued
+                        limit.not_started(run, limit.expected.get(run.run_id))
+                    elif not fut.done():  # its worker did not end within the grace period and was killed
+                        limit.stopped.append(run.run_id)
+                    else:
+                        _collect(fut, run, finished, failure, limit, stopping=True)
+    except BaseException:  # Ctrl-C, SIGTERM, or an error storing a result: no queued run starts after it
+        _stop_pool(pool, stop, futures)
         raise
     else:
         pool.shutdown(wait=True)
@@ -304,8 +460,57 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
             os.environ.pop("OMP_WAIT_POLICY", None)
 
 
-def _run_on_ray(todo: list[RunSpec], finished, failure, *, ray, threads: int, gpus: float, echo) -> None:
-    """Submit every run as a Ray task; store results in the order they finish."""
+def _collect(fut, run: RunSpec, finished, failure, limit: _Limit, stopping: bool = False) -> None:
+    """One pool future's outcome: stored, failed or not started; with ``stopping`` (after the time limit's
+    SIGTERM) an interrupted or killed run counts as stopped."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        result = fut.result()
+    except BaseException as err:
+        if stopping and isinstance(err, (KeyboardInterrupt, BrokenProcessPool)):
+            limit.stopped.append(run.run_id)
+            return
+        if not isinstance(err, Exception):  # Ctrl-C / a SIGTERM from outside: the suite stops
+            raise
+        failure(run, err)
+        return
+    if isinstance(result, NotStarted):
+        limit.not_started(run, result.expected)
+    elif result is None:  # the suite was stopping when a worker took it
+        if stopping:
+            limit.not_started(run, limit.expected.get(run.run_id))
+    else:
+        finished(run, result)
+
+
+def _stop_pool(pool, stop, futures: dict) -> None:
+    """No queued run starts; the runs in progress get SIGTERM (a training run saves its checkpoint) and
+    ``STOP_GRACE_SECONDS`` to end; then no worker is left alive."""
+    import multiprocessing
+    from concurrent.futures import wait
+
+    stop.set()  # a queued run that a worker takes now returns at once
+    workers_ = multiprocessing.active_children()  # the pool's workers
+    try:
+        for child in workers_:  # a run in training saves its checkpoint and stops
+            with contextlib.suppress(OSError):
+                os.kill(child.pid, signal.SIGTERM)
+        for fut in futures:
+            fut.cancel()
+        wait([f for f in futures if not f.cancelled()], timeout=STOP_GRACE_SECONDS)
+    finally:  # a second Ctrl-C, or a grace period gone: no worker outlives the suite either way
+        pool.shutdown(wait=False, cancel_futures=True)
+        for child in workers_:
+            child.join(timeout=5)
+            if child.is_alive():
+                child.kill()
+                child.join(timeout=5)
+
+
+def _run_on_ray(todo: list[RunSpec], finished, failure, *, ray, threads: int, gpus: float, echo, limit: _Limit) -> None:
+    """Submit every run as a Ray task; store results in the order they finish. At the time limit every task
+    left is cancelled: a running one gets KeyboardInterrupt (a training run saves its checkpoint)."""
     try:
         import ray as ray_mod
     except ImportError:
@@ -317,22 +522,77 @@ def _run_on_ray(todo: list[RunSpec], finished, failure, *, ray, threads: int, gp
         address = ray if isinstance(ray, str) else None
         ray_mod.init(address=address, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
     try:
-        task = ray_mod.remote(num_cpus=threads, num_gpus=gpus, max_retries=0)(execute_run)
-        pending = {}
+        task = ray_mod.remote(num_cpus=threads, num_gpus=gpus, max_retries=0)(_start_or_not)
+        pending, logged = {}, {}
         for run in todo:
             echo(f"queued {run.run_id} ({threads} CPUs{f', {gpus:g} GPUs' if gpus else ''}; "
                  f"log: {run.recipe['train']['output_dir']}/log.txt)")
-            pending[task.remote(run, threads, os.getcwd())] = run
+            logged[run.run_id] = _log_size(run)  # what its log held before this attempt
+            pending[task.remote(run, threads, limit.end, limit.expected.get(run.run_id), os.getcwd(), None,
+                                limit.seconds)] = run
         while pending:
-            ready, _ = ray_mod.wait(list(pending), num_returns=1)
+            left = None if limit.deadline is None else max(limit.deadline.left(), 0.0)
+            ready, _ = ray_mod.wait(list(pending), num_returns=1, timeout=left)
+            if not ready:  # the time limit
+                _cancel_ray(ray_mod, pending, finished, failure, limit, logged)
+                return
             for ref in ready:
-                run = pending.pop(ref)
-                try:
-                    result = ray_mod.get(ref)
-                except Exception as err:  # a Ray task error wraps the run's own
-                    failure(run, getattr(err, "cause", None) or err)
-                    continue
-                finished(run, result)
+                _collect_ray(ray_mod, ref, pending.pop(ref), finished, failure, limit)
     finally:
         if started_here:
             ray_mod.shutdown()
+
+
+def _collect_ray(ray_mod, ref, run: RunSpec, finished, failure, limit: _Limit) -> None:
+    try:
+        result = ray_mod.get(ref)
+    except Exception as err:  # a Ray task error wraps the run's own
+        failure(run, getattr(err, "cause", None) or err)
+        return
+    if isinstance(result, NotStarted):
+        limit.not_started(run, result.expected)
+    else:
+        finished(run, result)
+
+
+def _log_size(run: RunSpec) -> int:
+    log = Path(run.recipe["train"]["output_dir"]) / "log.txt"
+    return log.stat().st_size if log.is_file() else 0
+
+
+def _started_since(run: RunSpec, offset: int) -> bool:
+    """Whether ``run``'s log gained the line a run or re-evaluation writes as it starts since it held ``offset``
+    bytes."""
+    log = Path(run.recipe["train"]["output_dir"]) / "log.txt"
+    if not log.is_file():
+        return False
+    with open(log, "rb") as f:
+        f.seek(offset if log.stat().st_size >= offset else 0)  # a shorter log: a new one (its folder set aside)
+        text = f.read()
+    return any(f"== {run.run_id} {what}".encode() in text for what in ("started", "re-evaluating"))
+
+
+def _cancel_ray(ray_mod, pending: dict, finished, failure, limit: _Limit, logged: dict[str, int]) -> None:
+    """Cancel every pending task, give the running ones ``STOP_GRACE_SECONDS`` to save, then say what became of
+    each: finished meanwhile, stopped (its log shows it started in this attempt) or not started."""
+    for ref in pending:
+        ray_mod.cancel(ref)
+    ray_mod.wait(list(pending), num_returns=len(pending), timeout=STOP_GRACE_SECONDS)
+    halted = (ray_mod.exceptions.TaskCancelledError, ray_mod.exceptions.GetTimeoutError)
+    for ref, run in pending.items():
+        try:
+            result = ray_mod.get(ref, timeout=0)
+        except Exception as err:
+            cause = getattr(err, "cause", None)
+            if not isinstance(err, halted) and not isinstance(cause, KeyboardInterrupt):
+                failure(run, cause or err)  # it had failed on its own
+                continue
+            if _started_since(run, logged.get(run.run_id, 0)):  # cancelled, interrupted or not back in time
+                limit.stopped.append(run.run_id)
+            else:
+                limit.not_started(run, limit.expected.get(run.run_id))
+            continue
+        if isinstance(result, NotStarted):
+            limit.not_started(run, result.expected)
+        else:
+            finished(run, result)

@@ -1,0 +1,253 @@
+"""``ddp suite --time-limit``: estimates from stored runs, runs that would not fit left alone, the rest stopped."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+
+from conftest import ROOT
+from ddp.checkpoint import save_checkpoint
+from ddp.errors import DDPError
+from ddp.suite import ResultStore, SuiteTimeLimit, load_suite, run_suite, select
+from ddp.suite.budget import estimate_seconds, parse_duration, stored_results
+
+
+@pytest.mark.parametrize("text, seconds", [("5400", 5400), ("90m", 5400), ("1h30m", 5400), ("1.5h", 5400),
+                                           ("2h5m30s", 7530), ("45s", 45), (" 2H ", 7200)])
+def test_durations(text, seconds):
+    assert parse_duration(text) == pytest.approx(seconds)
+
+
+@pytest.mark.parametrize("text", ["", "1h30", "ninety", "5m1h", "-5", "0", "0m", "inf", "nan", "1e12"])
+def test_bad_durations_are_one_line(text):
+    with pytest.raises(DDPError, match="--time-limit") as err:
+        parse_duration(text)
+    assert "\n" not in str(err.value)
+
+
+def _fake_result(run, train, evals, wall):
+    return {"run_id": run.run_id, "task": run.task, "method": run.method, "seed": run.seed,
+            "train": {"steps": 2, "seconds": train, "loss": 0.1}, "wall_seconds": wall,
+            "protocols": {f"p{i}": {"success_rate": 1.0, "seconds": s} for i, s in enumerate(evals)}}
+
+
+def test_estimates_come_from_the_suites_stored_runs(suite_file):
+    suite = load_suite(suite_file)
+    runs = {r.run_id: r for r in suite.runs}  # every run of the fixture trains 2 steps (train.max_steps)
+    store = ResultStore(suite.results_dir)
+    store.save(runs["near__ddp__seed0"], _fake_result(runs["near__ddp__seed0"], 100.0, [10.0, 20.0], 125.0))
+    store.save(runs["far__ddp__seed0"], _fake_result(runs["far__ddp__seed0"], 200.0, [], 250.0))
+    stored = stored_results(suite.results_dir)
+
+    # the same task and method first: 50 s/step x 2 steps + evaluation (30 s) and setup (the wall time beyond: 0)
+    assert estimate_seconds(runs["near__ddp__seed1"], stored) == \
+        (130.0, "1 stored near ddp run: 50 s/step x 2 steps + 30 s evaluation and setup")
+    assert estimate_seconds(runs["far__ddp__seed1"], stored)[0] == 250.0  # 100 s/step x 2 + 50 s of setup
+    # else the method's runs on any task; nothing for a method without stored runs
+    only_far = [r for r in stored if r["task"] == "far"]
+    assert estimate_seconds(runs["near__ddp__seed1"], only_far)[:1] == (250.0,)
+    assert estimate_seconds(runs["near__ddp__seed1"], only_far)[1].startswith("1 stored ddp run:")
+    assert estimate_seconds(runs["near__dp3__seed1"], stored) == (None, "no stored dp3 run")
+
+    # a larger step budget costs its steps; a run resuming a checkpoint pays only the steps still to go
+    run = runs["near__ddp__seed1"]
+    longer = dataclasses.replace(run, recipe={**run.recipe, "train": {**run.recipe["train"], "max_steps": 10}})
+    assert estimate_seconds(longer, stored)[0] == pytest.approx(50.0 * 10 + 30.0)
+    save_checkpoint(suite_file.parent / run.recipe["train"]["output_dir"] / "last.pt", {"step": 1})
+    cost, why = estimate_seconds(run, stored)
+    assert cost == pytest.approx(80.0) and "x 1 steps (its checkpoint is at 1)" in why
+    # without step counts in the results: the median of the whole runs' cost, unscaled
+    bare = [{**r, "train": {"seconds": r["train"]["seconds"]}} for r in stored]
+    assert estimate_seconds(runs["far__ddp__seed1"], bare) == (250.0, "median of 1 stored far ddp run")
+
+    # a stored run that resumed: its setup is its last attempt's wall time less that attempt's own training
+    far_dp3 = runs["far__dp3__seed0"]
+    resumed = _fake_result(far_dp3, 1000.0, [50.0], 400.0)
+    resumed["train"]["attempt_seconds"] = 50.0  # 300 s of setup (demos, calibration) in the last attempt
+    assert estimate_seconds(runs["far__dp3__seed1"], [resumed])[0] == pytest.approx(500.0 * 2 + 50.0 + 300.0)
+
+    # one re-evaluating protocols pays their stored evaluation; one it never ran: the method's median
+    again = dataclasses.replace(runs["near__ddp__seed0"], reevaluate=("p1",))
+    assert estimate_seconds(again, stored)[0] == pytest.approx(20.0)
+    store.save(runs["far__ddp__seed1"], _fake_result(runs["far__ddp__seed1"], 1.0, [4.0, 6.0], 12.0))
+    again = dataclasses.replace(runs["far__ddp__seed0"], reevaluate=("p0", "p1"))
+    cost, why = estimate_seconds(again, stored_results(suite.results_dir))
+    assert cost == pytest.approx(7.0 + 13.0) and "p0, p1: the median of the stored ddp runs" in why
+
+
+def test_a_run_that_could_never_fit_starts_while_time_is_left():
+    """A run longer than the whole limit needs several budgets whatever happens: it starts (and resumes in the
+    next one); a run that fits a whole budget waits for one with room for it."""
+    from ddp.suite.budget import Deadline
+
+    fresh = Deadline.after(10.0)
+    assert fresh.allows(None, 10.0) and fresh.allows(8.0, 10.0) and fresh.allows(3600.0, 10.0)
+    late = Deadline(time.time() + 5.0)
+    assert not late.allows(8.0, 10.0) and late.allows(4.0, 10.0) and late.allows(11.0, 10.0)
+    assert late.allows(9.6, 10.0)  # within 5 % of the whole limit: no attempt would find that much time left
+    assert not Deadline(time.time() - 1.0).allows(None, 10.0) and not Deadline(time.time() - 1).allows(11.0, 10.0)
+
+
+@pytest.mark.parametrize("first_cost", [2.0, 9.0])
+def test_runs_that_do_not_fit_wait_and_the_limit_stops_the_one_in_progress(suite_file, monkeypatch, first_cost):
+    """In turn, in this process, a 10 s limit: a run expected to take longer than the time left does not start
+    (the next, shorter one still does); a run finished meanwhile informs the estimate of the next of its kind;
+    at the limit the run in progress gets SIGTERM, as from a scheduler, and the runs after it do not start;
+    what finished is stored and SuiteTimeLimit names the rest."""
+    import ddp.suite.runner as runner
+
+    suite = select(load_suite(suite_file), tasks=["near"])  # ddp s0, dp3 s0, ddp s1, dp3 s1
+    store = ResultStore(suite.results_dir)
+    far_dp3 = next(r for r in load_suite(suite_file).runs if r.run_id == "far__dp3__seed0")
+    store.save(far_dp3, _fake_result(far_dp3, 8.0, [], 8.0))  # a dp3 run takes 8 s: it fits 10, not 10 - 3
+
+    calls, stops = [], []
+
+    def fake_run(run, threads=None):
+        calls.append(run.run_id)
+        if len(calls) == 1:  # the first ddp run (no estimate yet: it starts) takes 3 s, reporting first_cost
+            time.sleep(3)
+            return _fake_result(run, first_cost, [], first_cost)
+        try:  # the second one is still going at the limit
+            time.sleep(60)
+        except KeyboardInterrupt as err:
+            stops.append(type(err).__name__)
+            raise
+        raise AssertionError("the time limit did not stop the run")
+
+    monkeypatch.setattr(runner, "execute_run", fake_run)
+    lines = []
+    handler = signal.getsignal(signal.SIGTERM)
+    t0 = time.time()
+    with pytest.raises(SuiteTimeLimit) as limit:
+        run_suite(suite, progress=False, echo=lines.append, time_limit=10.0)
+    assert time.time() - t0 < 40
+    assert signal.getsignal(signal.SIGTERM) is handler  # the suite's own handler is gone again
+    err = limit.value
+    assert list(err.done) == ["near__ddp__seed0"] and store.load(suite.runs[0]) is not None
+    assert any(line.startswith("not started near__dp3__seed0: expected 8 s, ") for line in lines), lines
+    if first_cost == 9.0:  # the first ddp run says a ddp run takes 9 s: the second does not start either
+        assert calls == ["near__ddp__seed0"] and stops == [] and err.stopped == []
+        assert err.skipped == {"near__dp3__seed0": 8.0, "near__ddp__seed1": 9.0, "near__dp3__seed1": 8.0}
+        return
+    assert calls == ["near__ddp__seed0", "near__ddp__seed1"] and stops == ["Preempted"]
+    assert err.stopped == ["near__ddp__seed1"]
+    assert err.skipped == {"near__dp3__seed0": 8.0, "near__dp3__seed1": 8.0}
+    assert "time limit of 10 s reached: stopped 1 run(s) in progress (near__ddp__seed1" in str(err)
+
+    # without a limit nothing is skipped: the same suite runs everything it has not stored
+    calls.clear()
+    monkeypatch.setattr(runner, "execute_run", lambda run, threads=None: calls.append(run.run_id)
+                        or _fake_result(run, 1.0, [1.0], 2.0))
+    run_suite(suite, progress=False, echo=lambda *_: None)
+    assert calls == ["near__dp3__seed0", "near__ddp__seed1", "near__dp3__seed1"]
+
+
+def test_an_idle_pool_worker_outlives_sigterm():
+    """The pool passes SIGTERM to every worker at the limit; one without a run (its run did not fit) must not
+    die of it: a dead worker breaks the pool, whose clean-up terminates the others, maybe mid-save."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from ddp.suite.runner import _init_worker
+
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker, initargs=(ctx.Event(),)) as pool:
+        pid = pool.submit(os.getpid).result(timeout=120)
+        os.kill(pid, signal.SIGTERM)
+        time.sleep(1.0)
+        assert pool.submit(os.getpid).result(timeout=60) == pid
+
+
+def test_ray_tells_a_stopped_run_by_what_its_log_gained_in_this_attempt(tmp_path, monkeypatch):
+    """A run's log is appended to across attempts: a queued task cancelled now is not "stopped" because an
+    earlier attempt's stop line ends its log."""
+    from ddp.suite.runner import _log_size, _started_since
+
+    monkeypatch.chdir(tmp_path)
+    run = _run_stub(tmp_path)
+    log = tmp_path / run.recipe["train"]["output_dir"] / "log.txt"
+    log.parent.mkdir(parents=True)
+    log.write_text(f"== {run.run_id} started (threads 1)\n== {run.run_id} stopped (stopped by SIGTERM)\n")
+    offset = _log_size(run)
+    assert offset > 0 and not _started_since(run, offset)
+    with open(log, "a") as f:
+        f.write(f"== {run.run_id} started (threads 1)\n")
+    assert _started_since(run, offset) and _started_since(run, 0)
+
+
+def _run_stub(tmp_path):
+    from ddp.suite.spec import RunSpec
+
+    return RunSpec(suite="s", task="t", method="m", seed=0, benchmark="b", protocols=None, episodes=None,
+                   recipe={"train": {"output_dir": "runs/suites/s/t__m__seed0"}})
+
+
+def test_a_pool_at_its_time_limit_saves_its_runs_and_exits_75(suite_file):
+    """`ddp suite --workers 2 --time-limit 30s` on runs that would train for hours: at the limit the two runs in
+    training save their checkpoints, the queued ones never start, no worker outlives the suite, and the exit
+    status (75) tells a job script to run the same command again."""
+    spec = yaml.safe_load(suite_file.read_text())
+    spec["set"] = ["train.lr=0.002", "train.max_steps=100000", "train.epochs=100000"]
+    spec["methods"] = {"dp3": spec["methods"]["dp3"]}
+    suite_file.write_text(yaml.safe_dump(spec, sort_keys=False))
+    runs = [suite_file.parent / "runs/suites/tiny_suite" / f"{t}__dp3__seed{k}" for k in (0, 1) for t in ("near", "far")]
+    proc = subprocess.Popen([sys.executable, "-m", "ddp", "suite", str(suite_file), "--workers", "2", "--threads", "1",
+                             "--quiet", "--time-limit", "30s"], cwd=suite_file.parent, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    children: list[str] = []
+    try:
+        deadline = time.time() + 25
+        while len(children) < 2 and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.5)
+            children = subprocess.run(["pgrep", "-P", str(proc.pid), "-f", "spawn_main"], capture_output=True,
+                                      text=True).stdout.split()
+        out = proc.communicate(timeout=300)[0].decode()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for c in children:  # whatever failed, leave no worker behind
+            with contextlib.suppress(OSError, ValueError):
+                os.kill(int(c), signal.SIGKILL)
+    assert proc.returncode == 75, out[-2000:]
+    assert "Traceback" not in out, out[-3000:]
+    assert "time limit of 30 s reached: stopped 2 run(s) in progress" in out, out[-2000:]
+    assert "left 2 not started (expected near__dp3__seed1: unknown, far__dp3__seed1: unknown)" in out, out[-2000:]
+    assert all((r / "last.pt").exists() for r in runs[:2]), out[-2000:]  # stopped in training: saved
+    assert not any((r / "log.txt").exists() for r in runs[2:]), out[-2000:]  # queued: never started
+    for _ in range(20):
+        alive = [c for c in children if os.path.exists(f"/proc/{c}")]
+        if not alive:
+            break
+        time.sleep(0.5)
+    assert not alive, f"workers outlived the suite: {alive}"
+
+
+@pytest.mark.slow
+def test_ray_tasks_at_the_time_limit_are_cancelled_and_save(suite_file):
+    """The same on a local Ray: at the limit the running tasks are cancelled (KeyboardInterrupt: training saves
+    its checkpoint) and the queued one never starts."""
+    pytest.importorskip("ray")
+    spec = yaml.safe_load(suite_file.read_text())
+    spec["set"] = ["train.lr=0.002", "train.max_steps=100000", "train.epochs=100000"]
+    spec["methods"] = {"dp3": spec["methods"]["dp3"]}
+    suite_file.write_text(yaml.safe_dump(spec, sort_keys=False))
+    suite = select(load_suite(suite_file), seeds=[0, 1], tasks=["near"])
+    suite.runs.append(next(r for r in load_suite(suite_file).runs if r.run_id == "far__dp3__seed0"))
+    with pytest.raises(SuiteTimeLimit) as limit:
+        run_suite(suite, ray=True, threads=1, progress=False, echo=lambda *_: None, time_limit=45.0)
+    # Ray runs two one-CPU tasks at once on a two-core machine; the third waits for a CPU and never starts
+    stopped, skipped = limit.value.stopped, limit.value.skipped
+    assert len(stopped) + len(skipped) == 3 and len(stopped) >= 1
+    for run_id in stopped:
+        assert (suite_file.parent / "runs/suites/tiny_suite" / run_id / "last.pt").exists(), run_id
+    for run_id in skipped:
+        assert not (suite_file.parent / "runs/suites/tiny_suite" / run_id / "last.pt").exists(), run_id
