@@ -200,7 +200,8 @@ def cmd_detect(args) -> int:
 
 def cmd_suite(args) -> int:
     from ddp.suite import SuiteRunsFailed, load_suite, run_suite, select, write_suite_report
-    from ddp.suite.budget import EXIT_TIME_LIMIT, SuiteTimeLimit, estimate_seconds, fmt_minutes, parse_duration, stored_results
+    from ddp.suite.budget import (EXIT_TIME_LIMIT, SuiteTimeLimit, estimate_seconds, fmt_minutes, parse_duration,
+                                  stored_results, total_expected)
     from ddp.suite.reevaluate import plan_reevaluation
     from ddp.suite.store import ResultStore
     from ddp.suite.superseded import superseded
@@ -258,12 +259,9 @@ def cmd_suite(args) -> int:
                 expected.append(cost)
                 what += f"; expected {fmt_minutes(cost)} ({why})"
             print(f"{run.run_id}: {label}; {what}")
-        known = [c for c in expected if c is not None]
         cost = ""
         if expected:
-            cost = (f"; expected {fmt_minutes(sum(known))} one after another"
-                    + (f" ({len(expected) - len(known)} run(s) without an estimate: no stored run of their method)"
-                       if len(known) < len(expected) else "")
+            cost = (f"; expected {total_expected(expected)}"
                     + (f", time limit {fmt_minutes(time_limit)}" if time_limit is not None else ""))
         print(f"{len(chosen.runs)} runs: {counts['done']} done, {counts['stale'] + counts['missing']} to run "
               f"({counts['stale']} stale, {resumes} resuming a checkpoint, {retrains} setting one aside"

@@ -29,9 +29,10 @@ from pathlib import Path
 
 from ddp.errors import DDPError
 from ddp.suite.spec import RunSpec
-from ddp.suite.store import read_complete
+from ddp.suite.store import evaluation_seconds, read_complete
 
-__all__ = ["Deadline", "SuiteTimeLimit", "estimate_seconds", "parse_duration", "stored_results", "EXIT_TIME_LIMIT"]
+__all__ = ["Deadline", "SuiteTimeLimit", "estimate_seconds", "parse_duration", "stored_results",
+           "total_expected", "EXIT_TIME_LIMIT"]
 
 EXIT_TIME_LIMIT = 75  # sysexits.h EX_TEMPFAIL: "temporary failure, user is invited to retry"
 
@@ -57,7 +58,7 @@ def parse_duration(text: str) -> float:
 def _full_cost(result: dict) -> float | None:
     """What a stored run cost from scratch: training (all of it) + its protocols, or its wall time if longer."""
     train = (result.get("train") or {}).get("seconds")
-    evals = sum(float((p or {}).get("seconds") or 0.0) for p in (result.get("protocols") or {}).values())
+    evals = evaluation_seconds(result)
     wall = result.get("wall_seconds")
     parts = [float(train) + evals] if train is not None else []
     parts += [float(wall)] if wall is not None else []
@@ -133,7 +134,7 @@ def estimate_seconds(run: RunSpec, stored: list[dict]) -> tuple[float | None, st
         if not (train.get("seconds") and train.get("steps")):
             continue
         per_step.append(float(train["seconds"]) / int(train["steps"]))
-        evals = sum(v for v in (_eval_seconds(r, p) for p in (r.get("protocols") or {})) if v is not None)
+        evals = evaluation_seconds(r)
         # the last attempt's setup: its wall time less its own training (all of it in older results) and evaluation
         attempt = float(train.get("attempt_seconds", train["seconds"]))
         setup = float(r["wall_seconds"]) - attempt - evals if r.get("wall_seconds") is not None else 0.0
@@ -172,6 +173,15 @@ class Deadline:
         # workers), and a run just under the limit would otherwise never find that much left in any attempt
         never_fits = limit is not None and expected is not None and expected > 0.95 * limit
         return left > 0 and (expected is None or expected <= left or never_fits)
+
+
+def total_expected(expected: list[float | None]) -> str:
+    """``32 min one after another (4 run(s) without an estimate: no stored run of their method)``: the sum of
+    the runs' expected seconds (None: no estimate)."""
+    known = [c for c in expected if c is not None]
+    unknown = len(expected) - len(known)
+    return f"{fmt_minutes(sum(known))} one after another" + (
+        f" ({unknown} run(s) without an estimate: no stored run of their method)" if unknown else "")
 
 
 def fmt_minutes(seconds: float | None) -> str:

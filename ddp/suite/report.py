@@ -22,6 +22,7 @@ import numpy as np
 
 from ddp import results_json
 from ddp.suite.figures import plot_detection, plot_table
+from ddp.suite.store import evaluation_seconds
 
 __all__ = ["aggregate", "wilson", "write_suite_report", "format_cell", "gaps_markdown"]
 
@@ -200,7 +201,7 @@ def cost_markdown(results: list[dict], title: str) -> str:
     for method in sorted({r["method"] for r in results}):
         runs = [r for r in results if r["method"] == method]
         train = [float(r["train"]["seconds"]) for r in runs if (r.get("train") or {}).get("seconds") is not None]
-        evals = [sum(float(p.get("seconds") or 0.0) for p in r["protocols"].values()) for r in runs]
+        evals = [evaluation_seconds(r) for r in runs]
         wall = [float(r["wall_seconds"]) for r in runs if r.get("wall_seconds") is not None]
         steps = sorted({int(r["train"]["steps"]) for r in runs if (r.get("train") or {}).get("steps") is not None})
         lines.append(f"| {method} | {len(runs)} | {', '.join(map(str, steps)) or '-'} | "

@@ -39,7 +39,7 @@ from pathlib import Path
 
 from ddp.errors import DDPError
 from ddp.preemption import Preempted, interruption, signals_deferred, stop_signals
-from ddp.suite.budget import Deadline, SuiteTimeLimit, estimate_seconds, fmt_minutes, stored_results
+from ddp.suite.budget import Deadline, SuiteTimeLimit, estimate_seconds, fmt_minutes, stored_results, total_expected
 from ddp.suite.provenance import code_version, process_code
 from ddp.suite.spec import RunSpec, SuiteSpec
 from ddp.suite.store import ResultStore
@@ -253,20 +253,15 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
          f"{len(todo)} to run ({how}" + (f"; {redo} re-evaluating {', '.join(reevaluate)}" if redo else "") + ")")
     if not todo:
         return done
-    limit = _Limit(time_limit, {}, [], None, suite.results_dir)
-    expected, stopped, deadline = limit.expected, limit.stopped, limit.deadline
-    if deadline is not None:
-        stored = stored_results(suite.results_dir)
-        expected.update({r.run_id: estimate_seconds(r, stored)[0] for r in todo})
-        known = [v for v in expected.values() if v is not None]
-        echo(f"time limit {fmt_minutes(time_limit)}: the {len(todo)} runs are expected to take "
-             f"{fmt_minutes(sum(known))} one after another" + (f", {len(todo) - len(known)} of them without an "
-             "estimate (no stored run of their method)" if len(known) < len(todo) else "")
-             + "; a run starts only if it fits in the time left (or could never fit in the whole limit)")
-    skipped: dict[str, float | None] = {}
     bar = tqdm(total=len(suite.runs), initial=len(done), desc=f"suite {suite.name}", unit="run", disable=not progress)
 
     say = bar.write if progress else echo  # a bar's own write keeps the line above the bar
+    limit = _Limit(time_limit, suite.results_dir, say)
+    if limit.deadline is not None:
+        limit.estimate(todo)
+        say(f"time limit {fmt_minutes(time_limit)}: the {len(todo)} runs are expected to take "
+            f"{total_expected(list(limit.expected.values()))}; a run starts only if it fits in the time left "
+            "(or could never fit in the whole limit)")
     failed: dict[str, str] = {}
 
     def finished(run: RunSpec, result: dict) -> None:
@@ -284,12 +279,6 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
         failed[run.run_id] = f"{type(err).__name__}: {first}"
         say(f"failed {run.run_id}: {failed[run.run_id]} (log: {run.recipe['train']['output_dir']}/log.txt)")
 
-    def not_started(run: RunSpec, expect: float | None) -> None:
-        skipped[run.run_id] = expect
-        left = deadline.left() if deadline is not None else 0.0
-        say(f"not started {run.run_id}: expected {fmt_minutes(expect)}, {fmt_minutes(max(left, 0.0))} left")
-
-    limit.not_started = not_started
     try:
         if ray:
             _run_on_ray(todo, finished, failure, ray=ray, threads=threads or 1, gpus=gpus_per_run, echo=echo,
@@ -300,7 +289,7 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
             _run_on_pool(todo, finished, failure, workers=workers, threads=threads, echo=echo, limit=limit)
     finally:
         bar.close()
-    undone = SuiteTimeLimit(time_limit, stopped, skipped, done) if stopped or skipped else None
+    undone = SuiteTimeLimit(time_limit, limit.stopped, limit.skipped, done) if limit.stopped or limit.skipped else None
     if failed:  # a failed run decides the exit status; the time limit's account goes with it
         raise SuiteRunsFailed(failed, done, also=str(undone) if undone else "")
     if undone is not None:
@@ -309,14 +298,29 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
 
 
 class _Limit:
-    """What the executors need of a time limit: the deadline (None: no limit), each run's expected seconds,
-    and where to note the runs stopped at the limit and those not started."""
+    """What the executors need of a time limit: the deadline (None: no limit) and each run's expected seconds;
+    it keeps the runs stopped at the limit and those not started (run id -> expected seconds), and ``say``s
+    why a run did not start."""
 
-    def __init__(self, seconds: float | None, expected: dict, stopped: list[str], not_started, results_dir):
+    def __init__(self, seconds: float | None, results_dir, say):
         self.seconds = seconds
         self.deadline = Deadline.after(seconds) if seconds else None
-        self.expected, self.stopped, self.not_started = expected, stopped, not_started
-        self.results_dir = str(results_dir)
+        self.results_dir, self.say = str(results_dir), say
+        self.expected: dict[str, float | None] = {}
+        self.stopped: list[str] = []
+        self.skipped: dict[str, float | None] = {}
+
+    def estimate(self, runs: list[RunSpec]) -> None:
+        """Each run's expected seconds from the results stored now (made again when the run is about to start)."""
+        stored = stored_results(self.results_dir)
+        self.expected.update({r.run_id: estimate_seconds(r, stored)[0] for r in runs})
+
+    def not_started(self, run: RunSpec, expected: float | None = None) -> None:
+        """``run`` did not start at the time limit; ``expected``: its estimate, if newer than this one's."""
+        expect = self.expected.get(run.run_id) if expected is None else expected
+        self.skipped[run.run_id] = expect
+        left = self.deadline.left() if self.deadline is not None else 0.0
+        self.say(f"not started {run.run_id}: expected {fmt_minutes(expect)}, {fmt_minutes(max(left, 0.0))} left")
 
     @property
     def end(self) -> float | None:
@@ -361,13 +365,9 @@ def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None,
                 timer.start()
             try:
                 for run in todo:
-                    if fired.is_set() or not limit.allows(run):
-                        limit.not_started(run, limit.expected.get(run.run_id))
-                        handled.add(run.run_id)
-                        continue
                     with guard:  # the timer signals only a run in progress: it may not fire between check and start
-                        if fired.is_set():
-                            limit.not_started(run, limit.expected.get(run.run_id))
+                        if fired.is_set() or not limit.allows(run):
+                            limit.not_started(run)
                             handled.add(run.run_id)
                             continue
                         state["run"] = run
@@ -400,7 +400,7 @@ def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None,
                 handled.add(state["run"].run_id)
             for run in todo:
                 if run.run_id not in handled:
-                    limit.not_started(run, limit.expected.get(run.run_id))
+                    limit.not_started(run)
 
 
 def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, threads: int | None, echo,
@@ -445,7 +445,7 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
                     if fut in seen:
                         continue
                     if fut.cancelled():  # still queued
-                        limit.not_started(run, limit.expected.get(run.run_id))
+                        limit.not_started(run)
                     elif not fut.done():  # its worker did not end within the grace period and was killed
                         limit.stopped.append(run.run_id)
                     else:
@@ -479,7 +479,7 @@ def _collect(fut, run: RunSpec, finished, failure, limit: _Limit, stopping: bool
         limit.not_started(run, result.expected)
     elif result is None:  # the suite was stopping when a worker took it
         if stopping:
-            limit.not_started(run, limit.expected.get(run.run_id))
+            limit.not_started(run)
     else:
         finished(run, result)
 
@@ -590,7 +590,7 @@ def _cancel_ray(ray_mod, pending: dict, finished, failure, limit: _Limit, logged
             if _started_since(run, logged.get(run.run_id, 0)):  # cancelled, interrupted or not back in time
                 limit.stopped.append(run.run_id)
             else:
-                limit.not_started(run, limit.expected.get(run.run_id))
+                limit.not_started(run)
             continue
         if isinstance(result, NotStarted):
             limit.not_started(run, result.expected)

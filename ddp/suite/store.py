@@ -16,7 +16,7 @@ from ddp import results_json
 from ddp.atomic_file import atomic_write
 from ddp.suite.spec import RunSpec
 
-__all__ = ["ResultStore", "read_complete"]
+__all__ = ["ResultStore", "evaluation_seconds", "read_complete"]
 
 FORMAT = "ddp-suite-run"
 
@@ -30,6 +30,11 @@ def read_complete(path: str | Path) -> dict | None:
         return None
     ok = isinstance(data, dict) and data.get("format") == FORMAT and data.get("complete") is True
     return data if ok else None
+
+
+def evaluation_seconds(result: dict) -> float:
+    """The seconds a stored run spent in its evaluation protocols, all of them (one without a time counts 0)."""
+    return sum(float((p or {}).get("seconds") or 0.0) for p in (result.get("protocols") or {}).values())
 
 
 class ResultStore:
