@@ -303,6 +303,9 @@ def cmd_run(args) -> int:
     from ddp.evaluate import markdown_table
     from ddp.experiment import build
 
+    _at_least_one(jobs=args.jobs)
+    if args.jobs > 1 and len(args.recipes) > 1:
+        return _run_jobs(args)
     reports = {}
     for recipe in args.recipes:
         exp = build(recipe, args.overrides)
@@ -314,6 +317,27 @@ def cmd_run(args) -> int:
         report = exp.evaluate(protocols, episodes=args.episodes, output_dir=out_dir, progress=not args.quiet)
         reports[exp.recipe.name] = report
         print(f"[{exp.recipe.name}] results in {out_dir}")
+    print(markdown_table(reports), end="")
+    return 0
+
+
+def _run_jobs(args) -> int:
+    """``ddp run --jobs N``: the recipes side by side in child processes (:mod:`ddp.run_jobs`)."""
+    from ddp.evaluate import markdown_table
+    from ddp.run_jobs import JobsFailed, plan_jobs, run_jobs, threads_per_job
+
+    parallel = min(args.jobs, len(args.recipes))
+    threads = threads_per_job(parallel)
+    jobs = plan_jobs(args.recipes, args.overrides, threads=threads, protocols=args.protocols,
+                     episodes=args.episodes, no_resume=args.no_resume)
+    print(f"{len(jobs)} recipes, {parallel} at a time, {threads} thread(s) each")
+    try:
+        reports = run_jobs(jobs, parallel=parallel, threads=threads)
+    except JobsFailed as err:
+        if err.reports:
+            print(markdown_table(err.reports), end="")
+        print(f"ddp: error: {err}", file=sys.stderr)
+        return 1
     print(markdown_table(reports), end="")
     return 0
 
@@ -461,12 +485,15 @@ def make_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_suite)
 
     p = sub.add_parser("run", help="train then evaluate one or more recipes", description="Train each recipe (resuming if a checkpoint exists) and evaluate it; print one table for all.")
-    p.add_argument("recipes", nargs="+", help="recipes to run in turn (e.g. DDP and its DP3 baseline)")
+    p.add_argument("recipes", nargs="+", help="recipes to run in turn, or --jobs at once (e.g. DDP and its DP3 baseline)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="override applied to every recipe (repeatable)")
     p.add_argument("--protocols", help="comma-separated protocols (default: each recipe's eval.protocols)")
     p.add_argument("--episodes", type=int, help="episodes per protocol")
     p.add_argument("--no-resume", action="store_true", help="train from scratch")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--jobs", "-j", type=int, default=1, metavar="N",
+                   help="run up to N recipes at once, each in its own process with its share of the cores and its "
+                        "output in <train.output_dir>/run.log (default 1: in turn, in this process)")
     p.set_defaults(func=cmd_run)
     return parser
 

@@ -1,0 +1,109 @@
+"""``ddp run --jobs N``: recipes side by side in child processes, one table, stoppable like ``ddp run``."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from conftest import ROOT, runnable
+
+from ddp.checkpoint import load_checkpoint
+from ddp.cli import main
+from ddp.errors import DDPError
+from ddp.run_jobs import plan_jobs, threads_per_job
+
+
+def _recipes(tmp_path: Path, **train) -> tuple[str, str]:
+    """A DDP recipe and its DP3 ablation, training into tmp_path/runs/<name>."""
+    ddp = runnable(train={"output_dir": str(tmp_path / "runs" / "{name}"), **train},
+                   eval={"episodes": 1, "protocols": ["id"], "max_steps": 16,
+                         "output_dir": str(tmp_path / "runs" / "{name}" / "eval")})
+    dp3 = {**ddp, "name": "tiny_dp3", "world_model": {"enabled": False}}
+    paths = []
+    for recipe in (ddp, dp3):
+        path = tmp_path / f"{recipe['name']}.yaml"
+        path.write_text(yaml.safe_dump(recipe))
+        paths.append(str(path))
+    return paths[0], paths[1]
+
+
+@pytest.fixture
+def child_path(monkeypatch):
+    """The children run `python -m ddp` from this checkout."""
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+
+
+def test_jobs_run_side_by_side_and_print_one_table(tmp_path, capsys, child_path):
+    a, b = _recipes(tmp_path)
+    assert main(["run", a, b, "--jobs", "2", "--quiet"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    starts = [i for i, line in enumerate(out) if line.startswith("started ")]
+    ends = [i for i, line in enumerate(out) if line.startswith("finished ")]
+    assert len(starts) == 2 and len(ends) == 2 and max(starts) < min(ends)  # both ran at once
+    assert "[tiny] trained 2 steps" in "\n".join(out) and "[tiny_dp3] trained 2 steps" in "\n".join(out)
+    for name in ("tiny", "tiny_dp3"):
+        ident = json.loads((tmp_path / "runs" / name / "eval" / "results.json").read_text())["protocols"]["id"]
+        row = f"| {name} | {100 * ident['success_rate']:.0f} ({ident['successes']}/1) |"
+        assert row in out  # the table comes from what each job's evaluation wrote
+        assert (tmp_path / "runs" / name / "last.pt").is_file()
+        assert "trained 2 steps" in (tmp_path / "runs" / name / "run.log").read_text()
+    rows = [line.split(" | ")[0] for line in out if line.startswith("| tiny")]
+    assert rows == ["| tiny", "| tiny_dp3"]  # the recipes' order, whichever finished first
+
+
+def test_each_job_gets_its_share_of_the_cores(tmp_path):
+    a, b = _recipes(tmp_path)
+    assert threads_per_job(2, cores=16) == 8 and threads_per_job(3, cores=2) == 1
+    jobs = plan_jobs([a, b], ["train.lr=0.002"], threads=3, episodes=4, no_resume=True)
+    for job in jobs:
+        sets = [job.argv[i + 1] for i, arg in enumerate(job.argv) if arg == "--set"]
+        assert sets == ["train.lr=0.002", "train.num_threads=3"]
+        assert job.argv[job.argv.index("--episodes") + 1] == "4" and "--no-resume" in job.argv
+    jobs = plan_jobs([a, b], ["train.num_threads=5"], threads=3)  # the user's own setting wins
+    assert [a for a in jobs[0].argv if a.startswith("train.num_threads")] == ["train.num_threads=5"]
+    assert [j.log for j in jobs] == [tmp_path / "runs" / "tiny" / "run.log", tmp_path / "runs" / "tiny_dp3" / "run.log"]
+
+
+def test_recipes_training_into_one_folder_are_refused(tmp_path, capsys):
+    a, _ = _recipes(tmp_path)
+    with pytest.raises(DDPError, match="trains into .*runs/tiny, as .*tiny.yaml does"):
+        plan_jobs([a, a], [], threads=1)
+    assert main(["run", a, a, "--jobs", "2"]) == 2
+    assert "trains into" in capsys.readouterr().err
+    assert main(["run", a, a, "--jobs", "0"]) == 2
+    assert "--jobs: must be >= 1" in capsys.readouterr().err
+
+
+def test_a_failed_job_leaves_the_others_table_and_exits_1(tmp_path, capsys, child_path):
+    a, b = _recipes(tmp_path)
+    bad = yaml.safe_load(Path(b).read_text())
+    bad["eval"]["device"] = "cuda:7"  # fails in the child, after training
+    Path(b).write_text(yaml.safe_dump(bad))
+    assert main(["run", a, b, "--jobs", "2", "--quiet"]) == 1
+    captured = capsys.readouterr()
+    assert "| tiny | " in captured.out and "| tiny_dp3 |" not in captured.out
+    assert "1 job(s) failed: tiny_dp3 (exit 2: ddp: error:" in captured.err
+    assert "failed tiny_dp3 after" in captured.out
+
+
+def test_a_stopped_run_passes_sigterm_on_and_the_jobs_save(tmp_path, child_path):
+    a, b = _recipes(tmp_path, max_steps=100_000, epochs=100_000, checkpoint_every_epochs=100_000)
+    proc = subprocess.Popen([sys.executable, "-m", "ddp", "run", a, b, "--jobs", "2", "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=os.environ)
+    logs = [tmp_path / "runs" / n / "logs" for n in ("tiny", "tiny_dp3")]
+    deadline = time.monotonic() + 120
+    while not all(p.is_dir() for p in logs) and time.monotonic() < deadline:  # both are training
+        time.sleep(0.2)
+    time.sleep(2.0)
+    proc.send_signal(signal.SIGTERM)
+    out, _ = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, out
+    assert "tiny stopped (exit 143" in out and "tiny_dp3 stopped (exit 143" in out
+    for name in ("tiny", "tiny_dp3"):  # each wrote its checkpoint where it was stopped
+        step = load_checkpoint(tmp_path / "runs" / name / "last.pt")["step"]
+        assert 0 < step < 100_000
