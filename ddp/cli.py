@@ -329,7 +329,7 @@ def _run_jobs(args) -> int:
     parallel = min(args.jobs, len(args.recipes))
     threads = threads_per_job(parallel)
     jobs = plan_jobs(args.recipes, args.overrides, threads=threads, protocols=args.protocols,
-                     episodes=args.episodes, no_resume=args.no_resume)
+                     episodes=args.episodes, no_resume=args.no_resume, quiet=args.quiet)
     print(f"{len(jobs)} recipes, {parallel} at a time, {threads} thread(s) each")
     try:
         reports = run_jobs(jobs, parallel=parallel, threads=threads)

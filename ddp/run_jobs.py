@@ -4,15 +4,18 @@ A method and its baselines (DDP and its DP3 ablation, say) are independent runs.
 barely uses a second core (the quickstart's DDP step: 156 ms on two threads, 179 ms on one), so on a
 machine with more cores than one run uses, running the recipes side by side finishes sooner than one after
 another. Each job is ``ddp run RECIPE`` in a child process (the same ``--set``, ``--protocols``,
-``--episodes`` and ``--no-resume``) with ``train.num_threads`` (unless ``--set``) and ``OMP_NUM_THREADS``
-set to its share of the cores and ``OMP_WAIT_POLICY=PASSIVE`` (unless set: OpenMP threads spinning in
-processes that share cores slow each other down many-fold); its console output goes to
-``<train.output_dir>/run.log``. Each finished job's summary lines are echoed, and at the end the table of
-every job that finished, read from the ``results.json`` its evaluation wrote.
+``--episodes``, ``--no-resume`` and ``--quiet``) with ``train.num_threads`` (unless ``--set``) and
+``OMP_NUM_THREADS`` (unless set) at its share of the cores, and ``OMP_WAIT_POLICY=PASSIVE`` (unless set:
+OpenMP threads spinning in processes that share cores slow each other down many-fold). Its console output,
+progress bars included, is appended to ``<train.output_dir>/run.log`` (``tail -f`` follows it). Each
+finished job's summary lines are echoed, and at the end the table of every job that finished, read from the
+``results.json`` its evaluation wrote (two recipes that would share a training or evaluation folder are
+refused before anything starts).
 
-Stopped with Ctrl-C, SIGTERM or SIGHUP, no queued job starts; the signal is passed on to the jobs in
+Stopped with Ctrl-C, SIGTERM or SIGHUP, no queued job starts; the signal is passed on once to the jobs in
 progress (a training run writes its checkpoint, as ``ddp run`` does alone: the same command resumes it)
-and the command waits for them. A job that fails leaves its traceback in its log; the others go on.
+and the command waits for them. A job that fails leaves its error in its log; the others go on. An error in
+this process stops the jobs too: none outlives it (short of SIGKILL).
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ class Job:
     results: Path
     proc: subprocess.Popen | None = field(default=None, repr=False)
     started: float = 0.0
+    log_offset: int = 0  # where this attempt's output begins in the log
     signalled: bool = False  # a stop signal was passed on to it
 
 
@@ -64,7 +68,7 @@ def threads_per_job(jobs: int, cores: int | None = None) -> int:
 
 
 def plan_jobs(recipes: list[str], overrides: list[str], *, threads: int, protocols: str | None = None,
-              episodes: int | None = None, no_resume: bool = False) -> list[Job]:
+              episodes: int | None = None, no_resume: bool = False, quiet: bool = False) -> list[Job]:
     """One :class:`Job` per recipe, each built here first (a typo fails before any job starts); two recipes
     that would train into the same folder are refused."""
     from ddp.experiment import build
@@ -75,16 +79,17 @@ def plan_jobs(recipes: list[str], overrides: list[str], *, threads: int, protoco
     for recipe in recipes:
         r = build(recipe, overrides).recipe
         out = Path(r.train.output_dir.format(name=r.name))
-        if out.resolve() in folders:
-            raise DDPError(f"{recipe}: trains into {out}, as {folders[out.resolve()]} does; run them one after "
-                           "the other (without --jobs) or give one of them another name")
-        folders[out.resolve()] = recipe
-        argv = [sys.executable, "-m", "ddp", "run", str(recipe), "--quiet"]
+        results = Path(r.eval.output_dir.format(name=r.name))
+        for what, folder in (("trains into", out), ("writes its evaluation to", results)):
+            if (what, folder.resolve()) in folders:
+                raise DDPError(f"{recipe}: {what} {folder}, as {folders[what, folder.resolve()]} does; run them one "
+                               "after the other (without --jobs) or give one of them another name or folder")
+            folders[what, folder.resolve()] = recipe
+        argv = [sys.executable, "-m", "ddp", "run", str(recipe)] + (["--quiet"] if quiet else [])
         argv += [a for o in [*overrides, *extra] for a in ("--set", o)]
         argv += (["--protocols", protocols] if protocols else []) + (["--episodes", str(episodes)] if episodes else [])
         argv += ["--no-resume"] if no_resume else []
-        jobs.append(Job(str(recipe), r.name, argv, out / "run.log",
-                        Path(r.eval.output_dir.format(name=r.name)) / "results.json"))
+        jobs.append(Job(str(recipe), r.name, argv, out / "run.log", results / "results.json"))
     return jobs
 
 
@@ -105,13 +110,17 @@ def run_jobs(jobs: list[Job], *, parallel: int, threads: int, echo=print) -> dic
     """Run ``jobs``, ``parallel`` at a time; return job name -> evaluation report, in the jobs' order.
 
     Raises :class:`JobsFailed` if any failed (after the others finished), ``KeyboardInterrupt`` /
-    :class:`~ddp.preemption.Preempted` if stopped (after the jobs in progress saved)."""
-    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    :class:`~ddp.preemption.Preempted` if stopped (after the jobs in progress saved). Whatever ends it, no
+    job outlives it: an error here stops the jobs in progress (SIGTERM: they save) before it propagates."""
+    env = dict(os.environ)
+    env.setdefault("OMP_NUM_THREADS", str(threads))
     env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     queue, running, stopped = list(jobs), [], []
     reports, failed = {}, {}
 
     def stop(signum, frame) -> None:  # no new job; the ones in progress stop as ddp run does alone
+        if stopped:  # passed on once: they are saving
+            return
         stopped.append(signum)
         for job in running:
             job.proc.send_signal(signum)
@@ -119,26 +128,27 @@ def run_jobs(jobs: list[Job], *, parallel: int, threads: int, echo=print) -> dic
 
     previous = {s: signal.signal(s, stop) for s in _STOPS if signal.getsignal(s) is not signal.SIG_IGN}
     try:
-        while queue or running:
-            while queue and len(running) < parallel and not stopped:
-                job = queue.pop(0)
-                job.log.parent.mkdir(parents=True, exist_ok=True)
-                with open(job.log, "w") as log:  # the child holds its own copy of the descriptor
-                    # its own session: a Ctrl-C at the terminal reaches this process alone, which passes it on once
-                    job.proc = subprocess.Popen(job.argv, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                                start_new_session=True)
-                job.started = time.perf_counter()
-                running.append(job)
-                echo(f"started {job.name} ({threads} thread{'s' if threads > 1 else ''}; log: {job.log})")
-            if not running:
-                break
-            time.sleep(0.2)
-            for job in [j for j in running if j.proc.poll() is not None]:
-                running.remove(job)
-                _finish(job, reports, failed, echo)
-            if stopped:
-                _wait_stopped(running, stopped[0], echo)
-                running.clear()
+        try:
+            while queue or running:
+                while queue and len(running) < parallel and not stopped:
+                    job = queue.pop(0)
+                    _start(job, env)
+                    running.append(job)
+                    echo(f"started {job.name} ({threads} thread{'s' if threads > 1 else ''}; "
+                         f"follow it: tail -f {job.log})")
+                if stopped or not running:
+                    break
+                time.sleep(0.2)
+                if stopped:  # a job that exits now was stopped, not failed
+                    break
+                for job in [j for j in running if j.proc.poll() is not None]:
+                    running.remove(job)
+                    _finish(job, reports, failed, echo)
+        except BaseException:
+            _stop(running, signal.SIGTERM, reports, failed, echo)
+            raise
+        if stopped:
+            _stop(running, stopped[0], reports, failed, echo)
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
@@ -152,13 +162,33 @@ def run_jobs(jobs: list[Job], *, parallel: int, threads: int, echo=print) -> dic
     return ordered
 
 
+def _start(job: Job, env: dict) -> None:
+    """Start ``job``'s process, its output appended to its log (a resumed run keeps the earlier attempts')."""
+    job.log.parent.mkdir(parents=True, exist_ok=True)
+    with open(job.log, "a") as log:  # the child holds its own copy of the descriptor
+        log.write(f"== {time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(job.argv)}\n")
+        log.flush()
+        job.log_offset = log.tell()
+        # its own session: a Ctrl-C at the terminal reaches this process alone, which passes it on once
+        job.proc = subprocess.Popen(job.argv, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True)
+    job.started = time.perf_counter()
+
+
 def _finish(job: Job, reports: dict, failed: dict, echo) -> None:
     """Note a job that exited: its report, or why it failed."""
     took = _elapsed(time.perf_counter() - job.started)
     code = job.proc.returncode
     if code == 0:
-        reports[job.name] = json.loads(job.results.read_text())
-        for line in job.log.read_text(errors="replace").splitlines():
+        try:
+            reports[job.name] = json.loads(job.results.read_text())
+        except (OSError, ValueError) as err:
+            failed[job.name] = f"its results {job.results} cannot be read: {type(err).__name__}"
+            echo(f"failed {job.name} after {took}: {failed[job.name]}")
+            return
+        with open(job.log, "rb") as log:  # this attempt's part of the log
+            log.seek(job.log_offset)
+            attempt = log.read().decode(errors="replace")
+        for line in attempt.splitlines():
             if line.startswith(f"[{job.name}]"):
                 echo(line)
         echo(f"finished {job.name} in {took}")
@@ -167,12 +197,13 @@ def _finish(job: Job, reports: dict, failed: dict, echo) -> None:
         echo(f"failed {job.name} after {took}: exit {code} (log: {job.log})")
 
 
-def _wait_stopped(running: list[Job], signum: int, echo) -> None:
-    """After a stop: wait for the jobs in progress to save and exit (killed after STOP_GRACE_SECONDS). One
-    started as the signal came, before the handler could see it, gets the signal now."""
+def _stop(running: list[Job], signum: int, reports: dict, failed: dict, echo) -> None:
+    """Stop the jobs in progress: ``signum`` to each one not yet sent a stop signal (one started as the signal
+    came, before the handler could see it), then wait for them to save and exit (killed after
+    STOP_GRACE_SECONDS). One that finished meanwhile counts as finished."""
     deadline = time.monotonic() + STOP_GRACE_SECONDS
     for job in running:
-        if not job.signalled:
+        if not job.signalled and job.proc.poll() is None:
             job.proc.send_signal(signum)
             job.signalled = True
     for job in running:
@@ -182,4 +213,8 @@ def _wait_stopped(running: list[Job], signum: int, echo) -> None:
             echo(f"{job.name} did not stop within {STOP_GRACE_SECONDS} s: killed")
             job.proc.kill()
             job.proc.wait()
-        echo(f"{job.name} stopped (exit {job.proc.returncode}; log: {job.log})")
+        if job.proc.returncode == 0:
+            _finish(job, reports, failed, echo)
+        else:
+            echo(f"{job.name} stopped (exit {job.proc.returncode}; log: {job.log})")
+    running.clear()

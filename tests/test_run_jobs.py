@@ -64,15 +64,19 @@ def test_each_job_gets_its_share_of_the_cores(tmp_path):
         sets = [job.argv[i + 1] for i, arg in enumerate(job.argv) if arg == "--set"]
         assert sets == ["train.lr=0.002", "train.num_threads=3"]
         assert job.argv[job.argv.index("--episodes") + 1] == "4" and "--no-resume" in job.argv
+        assert "--quiet" not in job.argv  # its log keeps the progress bars
+    assert all("--quiet" in j.argv for j in plan_jobs([a, b], [], threads=1, quiet=True))
     jobs = plan_jobs([a, b], ["train.num_threads=5"], threads=3)  # the user's own setting wins
     assert [a for a in jobs[0].argv if a.startswith("train.num_threads")] == ["train.num_threads=5"]
     assert [j.log for j in jobs] == [tmp_path / "runs" / "tiny" / "run.log", tmp_path / "runs" / "tiny_dp3" / "run.log"]
 
 
-def test_recipes_training_into_one_folder_are_refused(tmp_path, capsys):
-    a, _ = _recipes(tmp_path)
+def test_recipes_sharing_a_folder_are_refused(tmp_path, capsys):
+    a, b = _recipes(tmp_path)
     with pytest.raises(DDPError, match="trains into .*runs/tiny, as .*tiny.yaml does"):
         plan_jobs([a, a], [], threads=1)
+    with pytest.raises(DDPError, match="tiny_dp3.yaml: writes its evaluation to .*shared, as .*tiny.yaml does"):
+        plan_jobs([a, b], [f"eval.output_dir={tmp_path / 'shared'}"], threads=1)
     assert main(["run", a, a, "--jobs", "2"]) == 2
     assert "trains into" in capsys.readouterr().err
     assert main(["run", a, a, "--jobs", "0"]) == 2
@@ -82,7 +86,7 @@ def test_recipes_training_into_one_folder_are_refused(tmp_path, capsys):
 def test_a_failed_job_leaves_the_others_table_and_exits_1(tmp_path, capsys, child_path):
     a, b = _recipes(tmp_path)
     bad = yaml.safe_load(Path(b).read_text())
-    bad["eval"]["device"] = "cuda:7"  # fails in the child, after training
+    bad["eval"]["device"] = "cuda:99"  # fails in the child, after training
     Path(b).write_text(yaml.safe_dump(bad))
     assert main(["run", a, b, "--jobs", "2", "--quiet"]) == 1
     captured = capsys.readouterr()
@@ -91,19 +95,49 @@ def test_a_failed_job_leaves_the_others_table_and_exits_1(tmp_path, capsys, chil
     assert "failed tiny_dp3 after" in captured.out
 
 
+def _wait_training(tmp_path: Path, *names: str) -> None:
+    """Until each named job has logged a training loss (it is past its start-up, in the trainer's hands)."""
+    files = [tmp_path / "runs" / n / "logs" / "scalars" / "loss.csv" for n in names]
+    deadline = time.monotonic() + 180
+    while not all(f.is_file() for f in files):
+        assert time.monotonic() < deadline, f"no training loss logged in 180 s: {files}"
+        time.sleep(0.2)
+
+
 def test_a_stopped_run_passes_sigterm_on_and_the_jobs_save(tmp_path, child_path):
     a, b = _recipes(tmp_path, max_steps=100_000, epochs=100_000, checkpoint_every_epochs=100_000)
     proc = subprocess.Popen([sys.executable, "-m", "ddp", "run", a, b, "--jobs", "2", "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=os.environ)
-    logs = [tmp_path / "runs" / n / "logs" for n in ("tiny", "tiny_dp3")]
-    deadline = time.monotonic() + 120
-    while not all(p.is_dir() for p in logs) and time.monotonic() < deadline:  # both are training
-        time.sleep(0.2)
-    time.sleep(2.0)
-    proc.send_signal(signal.SIGTERM)
-    out, _ = proc.communicate(timeout=120)
+    try:
+        _wait_training(tmp_path, "tiny", "tiny_dp3")
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:  # never leave 100k-step trainings behind on a CI machine
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=300)
     assert proc.returncode == 128 + signal.SIGTERM, out
     assert "tiny stopped (exit 143" in out and "tiny_dp3 stopped (exit 143" in out
     for name in ("tiny", "tiny_dp3"):  # each wrote its checkpoint where it was stopped
         step = load_checkpoint(tmp_path / "runs" / name / "last.pt")["step"]
         assert 0 < step < 100_000
+
+
+def test_an_error_here_stops_the_jobs_in_progress(tmp_path, monkeypatch, child_path):
+    import ddp.run_jobs as run_jobs_module
+
+    long, short = _recipes(tmp_path, max_steps=100_000, epochs=100_000, checkpoint_every_epochs=100_000)
+    quick = yaml.safe_load(Path(short).read_text())
+    quick["train"].update(max_steps=2, epochs=1)
+    Path(short).write_text(yaml.safe_dump(quick))
+
+    def broken(job, *args):  # something goes wrong here once the short job is done
+        _wait_training(tmp_path, "tiny")
+        raise RuntimeError("broken")
+
+    monkeypatch.setattr(run_jobs_module, "_finish", broken)
+    jobs = plan_jobs([long, short], [], threads=1, quiet=True)
+    with pytest.raises(RuntimeError, match="broken"):
+        run_jobs_module.run_jobs(jobs, parallel=2, threads=1, echo=lambda line: None)
+    assert jobs[0].proc.returncode == 128 + signal.SIGTERM  # stopped like a preempted run, not orphaned
+    assert 0 < load_checkpoint(tmp_path / "runs" / "tiny" / "last.pt")["step"] < 100_000
