@@ -17,7 +17,7 @@ from conftest import ROOT
 from ddp.checkpoint import save_checkpoint
 from ddp.errors import DDPError
 from ddp.suite import ResultStore, SuiteTimeLimit, load_suite, run_suite, select
-from ddp.suite.budget import estimate_seconds, parse_duration, stored_results
+from ddp.suite.budget import estimate_seconds, parse_duration, stored_results, total_expected
 
 
 @pytest.mark.parametrize("text, seconds", [("5400", 5400), ("90m", 5400), ("1h30m", 5400), ("1.5h", 5400),
@@ -251,3 +251,10 @@ def test_ray_tasks_at_the_time_limit_are_cancelled_and_save(suite_file):
         assert (suite_file.parent / "runs/suites/tiny_suite" / run_id / "last.pt").exists(), run_id
     for run_id in skipped:
         assert not (suite_file.parent / "runs/suites/tiny_suite" / run_id / "last.pt").exists(), run_id
+
+
+def test_the_total_names_the_runs_without_an_estimate():
+    assert total_expected([600.0, 1200.0]) == "30 min one after another"
+    assert total_expected([600.0, None]) == ("10 min one after another (1 run(s) without an estimate: no stored run "
+                                             "of their method)")
+    assert total_expected([None, None]).startswith("unknown one after another (2 run(s)")  # not "0 s"

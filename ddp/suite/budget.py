@@ -180,7 +180,8 @@ def total_expected(expected: list[float | None]) -> str:
     the runs' expected seconds (None: no estimate)."""
     known = [c for c in expected if c is not None]
     unknown = len(expected) - len(known)
-    return f"{fmt_minutes(sum(known))} one after another" + (
+    total = fmt_minutes(sum(known)) if known else "unknown"
+    return f"{total} one after another" + (
         f" ({unknown} run(s) without an estimate: no stored run of their method)" if unknown else "")
 
 
