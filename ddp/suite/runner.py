@@ -255,31 +255,31 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
         return done
     bar = tqdm(total=len(suite.runs), initial=len(done), desc=f"suite {suite.name}", unit="run", disable=not progress)
 
-    say = bar.write if progress else echo  # a bar's own write keeps the line above the bar
-    limit = _Limit(time_limit, suite.results_dir, say)
-    if limit.deadline is not None:
-        limit.estimate(todo)
-        say(f"time limit {fmt_minutes(time_limit)}: the {len(todo)} runs are expected to take "
-            f"{total_expected(list(limit.expected.values()))}; a run starts only if it fits in the time left "
-            "(or could never fit in the whole limit)")
-    failed: dict[str, str] = {}
+    try:  # the bar is closed whatever happens from here
+        say = bar.write if progress else echo  # a bar's own write keeps the line above the bar
+        limit = _Limit(time_limit, suite.results_dir, say)
+        if limit.deadline is not None:
+            limit.estimate(todo)
+            say(f"time limit {fmt_minutes(time_limit)}: the {len(todo)} runs are expected to take "
+                f"{total_expected(list(limit.expected.values()))}; a run starts only if it fits in the time left "
+                "(or could never fit in the whole limit)")
+        failed: dict[str, str] = {}
 
-    def finished(run: RunSpec, result: dict) -> None:
-        rates = ", ".join(f"{p} {100 * v['success_rate']:.0f} %" for p, v in result["protocols"].items())
-        took = _fmt(result["wall_seconds"])
-        if run.reevaluate:
-            result = merge_reevaluation(store, run, result)
-        store.save(run, result)
-        done[run.run_id] = result
-        say(f"{'re-evaluated' if run.reevaluate else 'finished'} {run.run_id} in {took}: {rates}")
-        bar.update(1)
+        def finished(run: RunSpec, result: dict) -> None:
+            rates = ", ".join(f"{p} {100 * v['success_rate']:.0f} %" for p, v in result["protocols"].items())
+            took = _fmt(result["wall_seconds"])
+            if run.reevaluate:
+                result = merge_reevaluation(store, run, result)
+            store.save(run, result)
+            done[run.run_id] = result
+            say(f"{'re-evaluated' if run.reevaluate else 'finished'} {run.run_id} in {took}: {rates}")
+            bar.update(1)
 
-    def failure(run: RunSpec, err: Exception) -> None:
-        first = (str(err).strip().splitlines() or [""])[0]
-        failed[run.run_id] = f"{type(err).__name__}: {first}"
-        say(f"failed {run.run_id}: {failed[run.run_id]} (log: {run.recipe['train']['output_dir']}/log.txt)")
+        def failure(run: RunSpec, err: Exception) -> None:
+            first = (str(err).strip().splitlines() or [""])[0]
+            failed[run.run_id] = f"{type(err).__name__}: {first}"
+            say(f"failed {run.run_id}: {failed[run.run_id]} (log: {run.recipe['train']['output_dir']}/log.txt)")
 
-    try:
         if ray:
             _run_on_ray(todo, finished, failure, ray=ray, threads=threads or 1, gpus=gpus_per_run, echo=echo,
                         limit=limit)
