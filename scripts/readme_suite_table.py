@@ -2,18 +2,28 @@
 
     python3 scripts/readme_suite_table.py metaworld_cpu
 
-The README's copy is the markdown table that follows the first prose line (not a table row) naming
-`suites/<suite>.yaml`.
+The README's copy is the markdown table that follows the line `<!-- suite-table: <suite> -->` (blank lines
+between them allowed).
 """
 import sys
 from pathlib import Path
 
 suite = sys.argv[1]
 root = Path(__file__).resolve().parents[1]
-table = [l for l in (root / "results" / "suites" / suite / "table.md").read_text().splitlines() if l.startswith("|")]
+source = root / "results" / "suites" / suite / "table.md"
+if not source.is_file():
+    sys.exit(f"{source}: not found; run `ddp suite suites/{suite}.yaml --report` first")
+table = [l for l in source.read_text().splitlines() if l.startswith("|")]
 lines = (root / "README.md").read_text().split("\n")
-anchor = next(i for i, l in enumerate(lines) if f"`suites/{suite}.yaml`" in l and not l.startswith("|"))
-start = next(i for i in range(anchor, len(lines)) if lines[i].startswith("|"))
+marker = f"<!-- suite-table: {suite} -->"
+if marker not in lines:
+    known = sorted(l.split(":", 1)[1].strip(" ->") for l in lines if l.startswith("<!-- suite-table:"))
+    sys.exit(f"README.md: no line '{marker}' (tables marked: {', '.join(known) or 'none'})")
+start = lines.index(marker) + 1
+while start < len(lines) and not lines[start].strip():
+    start += 1
+if start == len(lines) or not lines[start].startswith("|"):
+    sys.exit(f"README.md: no table after '{marker}' (line {lines.index(marker) + 1})")
 end = start
 while end < len(lines) and lines[end].startswith("|"):
     end += 1
