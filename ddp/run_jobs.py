@@ -1,9 +1,10 @@
 """``ddp run --jobs N``: train and evaluate several recipes at once, each in its own process and share of cores.
 
-A method and its baselines (DDP and its DP3 ablation, say) are independent runs. A small model's training
-barely uses a second core (the quickstart's DDP step: 156 ms on two threads, 179 ms on one), so on a
-machine with more cores than one run uses, running the recipes side by side finishes sooner than one after
-another. Each job is ``ddp run RECIPE`` in a child process (the same ``--set``, ``--protocols``,
+A method and its baselines (DDP and its DP3 ablation, say) are independent runs. Where one run cannot use
+all of a machine's cores well (small models on a many-core workstation), running the recipes side by side
+finishes sooner than one after another. Not on a 2-core CPU: there the quickstart's DDP trained at about
+190 ms a step on one core beside its DP3 baseline against 148 ms on two cores alone, and side by side took
+longer in all (README, "ddp run --jobs"). Each job is ``ddp run RECIPE`` in a child process (the same ``--set``, ``--protocols``,
 ``--episodes``, ``--no-resume`` and ``--quiet``) with ``train.num_threads`` (unless ``--set``) and
 ``OMP_NUM_THREADS`` (unless set) at its share of the cores, and ``OMP_WAIT_POLICY=PASSIVE`` (unless set:
 OpenMP threads spinning in processes that share cores slow each other down many-fold). Its console output,
