@@ -1,8 +1,8 @@
 """``ddp run --jobs N``: train and evaluate several recipes at once, each in its own process and share of cores.
 
 A method and its baselines (DDP and its DP3 ablation, say) are independent runs. Where one run cannot use
-all of a machine's cores well (small models on a many-core workstation), running the recipes side by side
-finishes sooner than one after another. Not on a 2-core CPU: there the quickstart's DDP trained at about
+all of a machine's cores well (small models on a many-core workstation; not measured yet), running the
+recipes side by side should finish sooner than one after another. Not on a 2-core CPU: there the quickstart's DDP trained at about
 190 ms a step on one core beside its DP3 baseline against 148 ms on two cores alone, and side by side took
 longer in all (README, "ddp run --jobs"). Each job is ``ddp run RECIPE`` in a child process (the same ``--set``, ``--protocols``,
 ``--episodes``, ``--no-resume`` and ``--quiet``) with ``train.num_threads`` (unless ``--set``) and
