@@ -2,10 +2,12 @@
 
 A method and its baselines (DDP and its DP3 ablation, say) are independent runs. Where one run cannot use
 all of a machine's cores well (small models on a many-core workstation; not measured yet), running the
-recipes side by side should finish sooner than one after another. Not on a 2-core CPU: there the quickstart's DDP trained at about
-190 ms a step on one core beside its DP3 baseline against 148 ms on two cores alone, and side by side took
-longer in all (README, "ddp run --jobs"). Each job is ``ddp run RECIPE`` in a child process (the same ``--set``, ``--protocols``,
-``--episodes``, ``--no-resume`` and ``--quiet``) with ``train.num_threads`` (unless ``--set``) and
+recipes side by side should finish sooner than one after another. Not on a 2-core CPU: there the
+quickstart's DDP trained at about 190 ms a step on one core beside its DP3 baseline against 148 ms on two
+cores alone, and side by side took longer in all (README, "ddp run --jobs").
+
+Each job is ``ddp run RECIPE`` in a child process (the same ``--set``, ``--protocols``, ``--episodes``,
+``--no-resume`` and ``--quiet``) with ``train.num_threads`` (unless ``--set``) and
 ``OMP_NUM_THREADS`` (unless set) at its share of the cores, and ``OMP_WAIT_POLICY=PASSIVE`` (unless set:
 OpenMP threads spinning in processes that share cores slow each other down many-fold). Its console output,
 progress bars included, is appended to ``<train.output_dir>/run.log`` (``tail -f`` follows it). Each
@@ -32,6 +34,8 @@ from pathlib import Path
 
 from ddp.errors import DDPError
 from ddp.preemption import Preempted
+from ddp.recipe import parse_override
+from ddp.suite.budget import fmt_elapsed
 
 __all__ = ["Job", "JobsFailed", "plan_jobs", "run_jobs"]
 
@@ -43,7 +47,6 @@ _STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 class Job:
     """One recipe to run in its own process: what to run and where its log and results land."""
 
-    recipe: str
     name: str
     argv: list[str]
     log: Path
@@ -74,7 +77,7 @@ def plan_jobs(recipes: list[str], overrides: list[str], *, threads: int, protoco
     that would train into the same folder are refused."""
     from ddp.experiment import build
 
-    extra = [] if any(o.split("=", 1)[0].strip() == "train.num_threads" for o in overrides) else [
+    extra = [] if any(parse_override(o)[0] == ["train", "num_threads"] for o in overrides) else [
         f"train.num_threads={threads}"]
     jobs, folders = [], {}
     for recipe in recipes:
@@ -90,13 +93,8 @@ def plan_jobs(recipes: list[str], overrides: list[str], *, threads: int, protoco
         argv += [a for o in [*overrides, *extra] for a in ("--set", o)]
         argv += (["--protocols", protocols] if protocols else []) + (["--episodes", str(episodes)] if episodes else [])
         argv += ["--no-resume"] if no_resume else []
-        jobs.append(Job(str(recipe), r.name, argv, out / "run.log", results / "results.json"))
+        jobs.append(Job(r.name, argv, out / "run.log", results / "results.json"))
     return jobs
-
-
-def _elapsed(seconds: float) -> str:
-    m, s = divmod(int(round(seconds)), 60)
-    return f"{m} min {s:02d} s" if m else f"{s} s"
 
 
 def _last_line(path: Path) -> str:
@@ -177,7 +175,7 @@ def _start(job: Job, env: dict) -> None:
 
 def _finish(job: Job, reports: dict, failed: dict, echo) -> None:
     """Note a job that exited: its report, or why it failed."""
-    took = _elapsed(time.perf_counter() - job.started)
+    took = fmt_elapsed(time.perf_counter() - job.started)
     code = job.proc.returncode
     if code == 0:
         try:

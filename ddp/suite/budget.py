@@ -185,6 +185,12 @@ def total_expected(expected: list[float | None]) -> str:
         f" ({unknown} run(s) without an estimate: no stored run of their method)" if unknown else "")
 
 
+def fmt_elapsed(seconds: float) -> str:
+    """``45 s`` or ``19 min 05 s``: a wall time as it happened."""
+    m, s = divmod(int(round(seconds)), 60)
+    return f"{m} min {s:02d} s" if m else f"{s} s"
+
+
 def fmt_minutes(seconds: float | None) -> str:
     """``unknown``, ``45 s`` (under two minutes) or ``19 min``."""
     if seconds is None:

@@ -39,7 +39,8 @@ from pathlib import Path
 
 from ddp.errors import DDPError
 from ddp.preemption import Preempted, interruption, signals_deferred, stop_signals
-from ddp.suite.budget import Deadline, SuiteTimeLimit, estimate_seconds, fmt_minutes, stored_results, total_expected
+from ddp.suite.budget import (Deadline, SuiteTimeLimit, estimate_seconds, fmt_elapsed, fmt_minutes,
+                              stored_results, total_expected)
 from ddp.suite.provenance import code_version, process_code
 from ddp.suite.spec import RunSpec, SuiteSpec
 from ddp.suite.store import ResultStore
@@ -224,11 +225,6 @@ class SuiteRunsFailed(DDPError):
                          "the suite skips the finished runs when started again)" + (f"; also {also}" if also else ""))
 
 
-def _fmt(seconds: float) -> str:
-    m, s = divmod(int(round(seconds)), 60)
-    return f"{m} min {s:02d} s" if m else f"{s} s"
-
-
 def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None, progress: bool = True,
               echo=print, ray: bool | str = False, gpus_per_run: float = 0.0,
               reevaluate: list[str] | None = None, time_limit: float | None = None) -> dict[str, dict]:
@@ -267,7 +263,7 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
 
         def finished(run: RunSpec, result: dict) -> None:
             rates = ", ".join(f"{p} {100 * v['success_rate']:.0f} %" for p, v in result["protocols"].items())
-            took = _fmt(result["wall_seconds"])
+            took = fmt_elapsed(result["wall_seconds"])
             if run.reevaluate:
                 result = merge_reevaluation(store, run, result)
             store.save(run, result)
