@@ -513,15 +513,16 @@ def test_shipped_suites_expand(name, monkeypatch):
     assert suite.name == name and len(suite.runs) == len(suite.tasks) * len(suite.methods) * len(suite.seeds)
 
 
-def test_metaworld_cpu_baselines_compose_as_documented(monkeypatch):
-    """The shipped suite's DP3 and FlowPolicy runs are the quickstart's parts with the method overlays
+@pytest.mark.parametrize("name, steps", [("metaworld_budget", 9000), ("metaworld_cpu", 3000)])
+def test_metaworld_cpu_baselines_compose_as_documented(name, steps, monkeypatch):
+    """The shipped suites' DP3 and FlowPolicy runs are the quickstart's parts with the method overlays
     (the README's "baselines against their reference code" table), trained as long as DDP."""
     monkeypatch.chdir(ROOT)  # the suite names its recipes relative to the repository
-    suite = load_suite(ROOT / "suites" / "metaworld_cpu.yaml")
+    suite = load_suite(ROOT / "suites" / f"{name}.yaml")
     runs = {(r.task, r.method): r for r in suite.runs if r.seed == 0}
     ddp, dp3, flow = (runs["push", m].recipe for m in ("ddp", "dp3", "flowpolicy"))
     for r in (ddp, dp3, flow):
-        assert r["train"]["max_steps"] == 3000 and r["train"]["batch_size"] == 32
+        assert r["train"]["max_steps"] == steps and r["train"]["batch_size"] == 32
         assert r["policy"]["denoiser"]["down_dims"] == [64, 128, 256] and r["task"]["num_points"] == 128
         assert r["env"]["visible_sites"] == ["goal"] and r["env"]["crop_min"][2] == 0.005
         assert r["data"]["episodes"] == 50 and r["data"]["path"] == "data/metaworld/{task}_suite50"  # the paper's 50
