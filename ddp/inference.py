@@ -25,8 +25,14 @@ executes the chunk: the robot waits only for encode, detect and the policy, and 
 those of the inline forecast exactly. Otherwise forecasts are made lazily, when imagination needs one.
 
 An OOD flag with no displaced object to track (a false alarm, an occlusion,
-a sensor fault) is re-checked on the next cycle: the controller imagines
-for as long as the statistic stays above tau, then returns to reality.
+a sensor fault) is re-checked once, on the next cycle: D_R-I at or below tau
+returns to reality, above it the controller imagines on (to the episode's end,
+unless a recovery re-checks again; ``recheck_until_id`` re-checks every cycle).
+
+A displaced object is tracked (``a^track = Delta p``) when the subtask that targets it is the current one
+in OOD mode: at the OOD onset, when the tracker first sees it move, or when its subtask begins; its
+recovery (``a^rec = -Delta p``) moves the end-effector only if it was tracked, so the shifts of an
+episode sum to zero.
 
 Nothing non-finite leaves it: observations are validated at the boundary
 (``ddp.safety.check_observation``); an environment whose observation or latents
@@ -77,6 +83,7 @@ class EnvState:
     offsets: torch.Tensor | None = None  # Delta p_C per object, from the tracker
     displaced: torch.Tensor | None = None  # C_disp as a mask over objects
     recovered: torch.Tensor | None = None  # objects already brought back
+    tracked: torch.Tensor | None = None  # objects whose a^track the end-effector executed (a^rec undoes it)
     subtask: int = 0
     subtask_start: int = 0
     # resume_after_recovery: the tracked offsets when the controller returned to reality with displaced
@@ -173,8 +180,9 @@ class DDPController(KeyedModule):
         return self._async_forecast and self.forecast_every_cycle and self.model.has_world_model
 
     def __getstate__(self):
-        """Copies and pickles (e.g. a collector moving the policy) leave the forecast thread behind."""
-        self.wait_forecast()
+        """Copies and pickles (e.g. a collector moving the policy) leave the forecast thread behind; the
+        forecast it was making is stored first, so a copy's next cycle has it (a D_R-I to score)."""
+        self._collect()
         state = super().__getstate__() if hasattr(super(), "__getstate__") else self.__dict__
         return {**state, "_pool": None, "_job": None}
 
@@ -213,18 +221,43 @@ class DDPController(KeyedModule):
         pending = [k for k in targets if k < len(s.displaced) and bool(s.displaced[k]) and not bool(s.recovered[k])]
         return bool(s.recovered.any()) and not pending
 
-    @staticmethod
-    def _left_to_recover(s: EnvState) -> bool:
-        """A displaced object is still where the tracking shift followed it (its recovery is to come)."""
-        return s.displaced is not None and bool((s.displaced & ~s.recovered).any())
+    def _left_to_recover(self, s: EnvState) -> bool:
+        """A displaced object that some subtask targets is not recovered yet (its recovery is to come);
+        displaced objects no subtask targets are scenery that no recovery will bring back."""
+        if s.displaced is None or s.recovered is None:
+            return False
+        targets = [sub.target for sub in self.subtasks if sub.target is not None and sub.target < len(s.displaced)]
+        return any(bool(s.displaced[k]) and not bool(s.recovered[k]) for k in targets)
 
     @staticmethod
     def _accepted_scene(s: EnvState, offsets: torch.Tensor | None, b: int) -> bool:
         """The tracker sees nothing displaced beyond what was accepted when the controller resumed reality
-        after a recovery (D_R-I stays high while the scene stays changed; only a new displacement counts)."""
+        after a recovery (D_R-I stays high while the scene stays changed; only a new displacement counts).
+        An object whose offset reads zero (hidden, carried, or back at its ID place) is no new displacement."""
         if s.accepted is None or offsets is None:
             return False
-        return bool(((offsets[b] - s.accepted).norm(dim=-1) <= NEW_DISPLACEMENT).all())
+        seen = offsets[b].norm(dim=-1) > MIN_OFFSET
+        return bool(((offsets[b] - s.accepted).norm(dim=-1)[seen] <= NEW_DISPLACEMENT).all())
+
+    @staticmethod
+    def _scene_to_accept(s: EnvState, offsets: torch.Tensor | None, b: int) -> torch.Tensor | None:
+        """The offsets accepted when reality resumes: what the tracker sees now, and for an object it cannot
+        see (zero offset) the offset it was last tracked at, so its reappearance there is no new event."""
+        if offsets is None:
+            return None
+        seen = offsets[b].norm(dim=-1, keepdim=True) > MIN_OFFSET
+        known = s.offsets if s.offsets is not None else torch.zeros_like(offsets[b])
+        return torch.where(seen, offsets[b], known).clone()
+
+    def _track(self, s: EnvState, b: int, ee_shift: torch.Tensor, offsets: torch.Tensor) -> None:
+        """a^track_j = Delta p_Cj for the current subtask's target, if it is displaced and not yet tracked
+        or recovered (``offsets``: this environment's [K, 3])."""
+        target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
+        if (not self.track or target is None or s.displaced is None or not bool(s.displaced[target])
+                or bool(s.recovered[target]) or bool(s.tracked[target])):
+            return
+        ee_shift[b] += offsets[target]
+        s.tracked[target] = True
 
     def _subtask_ended(self, s: EnvState, obs, chunk: int) -> bool:
         trig = self._trigger(s)
@@ -315,9 +348,15 @@ class DDPController(KeyedModule):
         self._job = (pending[0], self._pool.submit(self._imagine_in_background, pending[1], pending[2]))
 
     def close(self) -> None:
-        """Wait for a background forecast and stop its thread (also done when the controller is collected)."""
-        self.wait_forecast()
-        self._job = None
+        """Wait for a background forecast and stop its thread (also done when the controller is collected).
+        A forecast that failed is reported as a warning (no cycle will collect its error any more)."""
+        job, self._job = self._job, None
+        error = job[1].exception() if job is not None else None  # waits for it
+        if error is not None:
+            import warnings
+
+            warnings.warn(f"controller: the last background world-model forecast failed and was dropped at "
+                          f"close: {error!r}", RuntimeWarning, stacklevel=2)
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
@@ -394,6 +433,7 @@ class DDPController(KeyedModule):
         for s in self.states:
             if s.recovered is None:
                 s.recovered = torch.zeros(num_objects, dtype=torch.bool)
+                s.tracked = torch.zeros(num_objects, dtype=torch.bool)
         if offsets is not None:
             # objects recovered before this cycle (a recovery below is only observable from the next one)
             td.set(("ddp", "recovered"), torch.stack([s.recovered.clone() for s in self.states]))
@@ -405,7 +445,7 @@ class DDPController(KeyedModule):
             target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
             if s.ood and s.displaced is not None and self.recovery is not None:
                 shift, recovered = self.recovery.recover(s.offsets, s.displaced & ~s.recovered, target)
-                if self.track:  # a^rec_j = -Delta p_Cj undoes a^track_j; without tracking there is none to undo
+                if target is not None and bool(s.tracked[target]):  # a^rec_j = -Delta p_Cj undoes a^track_j
                     ee_shift[b] += shift
                 s.recovered |= recovered
                 if bool(recovered.any()):
@@ -424,9 +464,7 @@ class DDPController(KeyedModule):
                 if offsets is not None:
                     s.offsets = offsets[b]
                     s.displaced = (offsets[b].norm(dim=-1) > MIN_OFFSET) & ~s.recovered
-                    target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
-                    if self.track and target is not None and bool(s.displaced[target]):
-                        ee_shift[b] += offsets[b][target]  # a^track_j = Delta p_Cj
+                    self._track(s, b, ee_shift, offsets[b])  # a^track_j = Delta p_Cj
                 if s.displaced is None or not bool(s.displaced.any()):
                     s.recheck_after = chunk_index[b]  # nothing to track or recover: re-check D_R-I next cycle
             elif s.ood and not self.detector.sticky:
@@ -437,12 +475,14 @@ class DDPController(KeyedModule):
                     s.ood = False  # D_R-I <= tau: return to reality
                 elif self.resume_after_recovery and self._targets_recovered(s):
                     s.ood = False  # every displaced target is back: reality, with the rest of the scene as it is
-                    s.accepted = offsets[b].clone() if offsets is not None else None
+                    s.accepted = self._scene_to_accept(s, offsets, b)
                 elif self.recheck_until_id and not self._left_to_recover(s):
                     s.recheck_after = chunk_index[b]  # nothing left to track or recover: re-check next cycle too
 
         # Keep tracking in OOD mode: an object the tracker could not see when OOD began (zero
-        # offset, e.g. hidden behind the arm) joins C_disp once it is seen displaced.
+        # offset, e.g. hidden behind the arm) joins C_disp once it is seen displaced; the current
+        # subtask's target is tracked if it is displaced and was not yet (seen now, or displaced all
+        # along while an earlier subtask ran).
         for b, s in enumerate(self.states):
             if not (s.ood and offsets is not None and s.displaced is not None):
                 continue
@@ -450,9 +490,7 @@ class DDPController(KeyedModule):
             if bool(seen.any()):
                 s.offsets = torch.where(seen[:, None], offsets[b], s.offsets)
                 s.displaced |= seen
-                target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
-                if self.track and target is not None and bool(seen[target]):
-                    ee_shift[b] += offsets[b][target]
+            self._track(s, b, ee_shift, s.offsets)
 
         # O_curr: real latents in ID, imagined ones in OOD (Enter Imagination)
         imagined = [self.imagine and s.ood and s.has_forecast for s in self.states]

@@ -317,6 +317,10 @@ def test_background_forecast_keeps_the_thread_count_copies_and_follows_a_swapped
         torch.set_num_threads(before)
     clone = copy.deepcopy(ctrl)  # e.g. a collector moving the policy: the thread stays behind
     assert clone._pool is None and clone._job is None
+    # the forecast the original was making is stored first: the copy's next cycle has a D_R-I to score
+    out = clone(env.step(td)["next"])
+    assert not torch.isnan(out["ddp", "latent_pred"]).any()
+    clone.close()
     ctrl.close()
     # forecasting every cycle is read each cycle: a D_R-I detector swapped in later gets its forecasts
     lazy = exp.make_controller(detector={"name": "never"}, tracker=False)
@@ -346,4 +350,7 @@ def test_async_forecast_error_surfaces_on_the_next_cycle(exp):
     td = ctrl(env.reset())  # launches another broken forecast; a reset says it drops it
     with pytest.warns(RuntimeWarning, match="forecast failed and was dropped at reset"):
         ctrl.reset()
+    ctrl(env.reset())  # and a close: no cycle is left to raise its error
+    with pytest.warns(RuntimeWarning, match="forecast failed and was dropped at close"):
+        ctrl.close()
     del ctrl.model.imagine

@@ -120,13 +120,17 @@ def test_recheck_until_id_keeps_rechecking_once_nothing_is_left_to_recover(tiny_
     ctrl.detector = ScriptedStickyDetector(ood_at={2, 5, 6})
     assert rollout(exp, ctrl)["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 0]
 
-    # a displaced object not yet recovered (a later subtask's target) stops the repeated re-checks
-    from ddp.inference import EnvState
+    # a displaced object not yet recovered (a later subtask's target) stops the repeated re-checks; one no
+    # subtask targets (coffee-pull's machine) never will be recovered, so it does not
+    from ddp.inference import EnvState, Subtask
 
     t, f = True, False
+    ctrl.subtasks = [Subtask(target=0, trigger=None), Subtask(target=1, trigger=None)]
     assert ctrl._left_to_recover(EnvState(displaced=torch.tensor([t, t]), recovered=torch.tensor([t, f])))
     assert not ctrl._left_to_recover(EnvState(displaced=torch.tensor([t, f]), recovered=torch.tensor([t, f])))
     assert not ctrl._left_to_recover(EnvState())  # no tracker: nothing was ever followed
+    ctrl.subtasks = [Subtask(target=0, trigger=None), Subtask(target=None, trigger=None)]
+    assert not ctrl._left_to_recover(EnvState(displaced=torch.tensor([t, t]), recovered=torch.tensor([t, f])))
 
 
 def test_targets_recovered_ignores_displaced_objects_no_subtask_targets(tiny_recipe):
@@ -146,6 +150,16 @@ def test_targets_recovered_ignores_displaced_objects_no_subtask_targets(tiny_rec
     same, moved = torch.tensor([[[0.0, 0.0, 0.0], [-0.19, 0.0, 0.0]]]), torch.tensor([[[0.0, 0.1, 0.0], [-0.2, 0.0, 0.0]]])
     assert ctrl._accepted_scene(state, same, 0) and not ctrl._accepted_scene(state, moved, 0)
     assert not ctrl._accepted_scene(EnvState(), same, 0) and not ctrl._accepted_scene(state, None, 0)
+    # an object the tracker cannot see (zero offset: hidden behind the arm, or carried) is no new event
+    hidden = torch.zeros(1, 2, 3)
+    assert ctrl._accepted_scene(state, hidden, 0)
+    # accepting a scene keeps, for an object not seen at that moment, the offset it was tracked at, so that
+    # its reappearance there is no new event either
+    state.offsets = torch.tensor([[0.0, 0.0, 0.0], [-0.2, 0.0, 0.0]])
+    accepted = ctrl._scene_to_accept(state, hidden, 0)
+    assert torch.equal(accepted, state.offsets) and ctrl._scene_to_accept(state, None, 0) is None
+    state.accepted = accepted
+    assert ctrl._accepted_scene(state, torch.tensor([[[0.0, 0.0, 0.0], [-0.2, 0.0, 0.0]]]), 0)
 
 
 # --------------------------------------------------------------------------- 2. per-subtask triggers
@@ -290,6 +304,52 @@ def test_track_false_enters_ood_without_a_tracking_shift(tiny_recipe):
         r = rollout(exp, ctrl)
         assert r["ddp", "mode"][2] == 1 and shifts(r)[2] == [0.0] * 3
         assert shifts(r)[3] == late_shift, track
+
+
+class ScriptedTracker(torch.nn.Module):
+    """Offsets [B, K, 3] of K objects: ``offsets`` from chunk ``from_chunk`` on, zero (not moved) before."""
+
+    def __init__(self, offsets, from_chunk):
+        super().__init__()
+        self.offsets, self.from_chunk = torch.tensor(offsets), from_chunk
+
+    def forward(self, td):
+        chunk = td.get("chunk_index").reshape(-1)
+        out = torch.zeros(chunk.shape[0], *self.offsets.shape)
+        out[chunk >= self.from_chunk] = self.offsets
+        td.set(("ddp", "offsets"), out)
+        return td
+
+    def reset(self):
+        pass
+
+    def key(self, role):
+        return ("ddp", role)
+
+
+def test_a_later_subtasks_target_moved_before_it_began_is_tracked_when_it_begins(tiny_recipe):
+    """Two subtasks with two targets (Franka pour: the teapot, then the cup), the second target moved while
+    the first subtask runs: its a^track comes when its subtask begins in OOD mode, so that its a^rec at
+    the subtask's end undoes a shift that happened (the shifts of the episode sum to zero)."""
+    exp = make_exp(tiny_recipe, subtasks=[{"target": 0, "trigger": {"name": "chunk_index", "chunk": 4}},
+                                          {"target": 1, "trigger": {"name": "chunk_index", "chunk": 6}},
+                                          {"target": None}])
+    moved = [0.0, 0.1, 0.0]
+    for track in (True, False):
+        ctrl = exp.make_controller(track=track)
+        ctrl.detector = ScriptedStickyDetector(ood_at={2})
+        ctrl.tracker = ScriptedTracker([[0.0, 0.0, 0.0], moved], from_chunk=2)
+        r = rollout(exp, ctrl)
+        assert r["ddp", "subtask"].tolist() == [0, 0, 0, 0, 1, 1, 2, 2]
+        # OOD from chunk 2 (object 1 moved; subtask 0's target did not: nothing to track yet, and no
+        # recovery at its end, so no re-check); object 1's subtask begins at chunk 4, ends at chunk 6 with
+        # its recovery and the re-check at chunk 7, where the detector says ID
+        assert r["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 0]
+        expected = [[0.0] * 3 for _ in range(CHUNKS)]
+        if track:
+            expected[4], expected[6] = moved, [-d for d in moved]
+        assert shifts(r) == expected
+        assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
 
 
 # --------------------------------------------------------------------------- 5. controller.safe_lift
