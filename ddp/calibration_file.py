@@ -3,8 +3,9 @@
 ``ddp eval`` writes ``<checkpoint stem>.calibration.json`` next to the
 checkpoint: the fitted statistic and threshold (the detector's ``calibration()``), the target
 false-alarm rate, how many ID episodes and which seeds produced it, and what it is valid for: a
-digest of the model's weights, the detector section, the ID env overrides and the sampling setup
-(both schedulers' sections, the forecast samples). A later evaluation with the same four reuses it; anything else calibrates again and overwrites it. The file is plain
+digest of the model's weights, the detector section, the ID env (the recipe's env section, the
+evaluation's overrides of it, the chunking) and the sampling setup (both schedulers' sections, the
+forecast samples). A later evaluation with the same four reuses it; anything else calibrates again and overwrites it. The file is plain
 JSON (written atomically); loading it runs no code.
 """
 

@@ -145,7 +145,10 @@ def _calibration(exp, detector, section: dict, *, seed: int, runs: dict) -> dict
     from ddp.calibration_file import calibration_path, load_calibration, model_digest, save_calibration
 
     cfg = exp.recipe.eval
-    id_env = env_overrides(exp, get_protocol("id"), cfg.max_steps)
+    # the ID env the scores come from: the recipe's env section (cloud size, camera, noise, ...), the
+    # evaluation's overrides of it, and the chunking (a chunk's actions and the stacked observations)
+    id_env = {"env": exp.resolved["env"], "overrides": env_overrides(exp, get_protocol("id"), cfg.max_steps),
+              "obs_steps": exp.model.obs_steps, "action_steps": exp.model.action_steps}
     sampling = {"policy": exp.resolved["policy"]["scheduler"], "world_model": exp.resolved["world_model"]["scheduler"],
                 "forecast_samples": exp.recipe.controller.forecast_samples}
     key = dict(model_hash=model_digest(exp.model), detector=section, id_env=id_env,

@@ -115,6 +115,33 @@ def test_per_chunk_calibration_reaches_every_protocol(exp, tmp_path):
     assert "detection" in first and "Detection" in (tmp_path / "table.md").read_text()
 
 
+def test_a_saved_calibration_serves_only_the_env_it_was_made_in(exp, tmp_path, monkeypatch):
+    """Reused for the same model, detector and ID env; a changed env setting (here the cloud size, as
+    ``ddp eval --set env.num_points=...`` changes it) calibrates again."""
+    import ddp.evaluate as evaluate
+    from ddp.schema import resolve_part
+
+    calls, real = [], evaluate.calibrate_detector
+    monkeypatch.setattr(evaluate, "calibrate_detector", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
+    exp.parts["controller.detector"] = resolve_part(
+        "detector", {"name": "discrepancy", "tau": None, "alpha": 0.5, "threshold_on": "all"},
+        key="controller.detector", source="<test>")
+    exp.recipe.eval.calibration_episodes = 2
+    exp.checkpoint_path = tmp_path / "last.pt"
+
+    def evaluate_once():
+        exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path, progress=False)
+
+    evaluate_once()
+    evaluate_once()
+    assert len(calls) == 1  # the second evaluation read the saved calibration
+    exp.resolved["env"]["num_points"] = exp.resolved["env"]["num_points"] + 1
+    evaluate_once()
+    assert len(calls) == 2
+    evaluate_once()
+    assert len(calls) == 2  # saved again, for the new env
+
+
 def test_discrepancy_needs_a_world_model(tiny_recipe):
     tiny_recipe["world_model"]["enabled"] = False
     e = build(tiny_recipe)
