@@ -83,6 +83,11 @@ def _chunks_per_episode(exp, overrides: dict) -> int:
     steps = getattr(cfg, "max_episode_steps", None)
     if steps is None:
         raise RecipeError("the env config has no max_episode_steps; set eval.max_steps", source=exp.source, key="eval")
+    if getattr(cfg, "terminate_on_success", False):
+        # episodes are cut from the collector's stream every `chunks` chunks: one that ended early would
+        # run into the next (its seed, success and detector trace mixed with another episode's)
+        raise RecipeError("must be false for evaluation: episodes run their full length and count success "
+                          "at any step (DP3's protocol)", source=exp.source, key="env.terminate_on_success")
     return math.ceil(steps / exp.recipe.policy.action_steps)
 
 

@@ -179,6 +179,9 @@ CASES = [
      "the recipe's plugin modules were not imported (evil_plugin_pkg)"),
     ("eval-cuda-on-cpu", lambda t, tr: ["eval", tr["recipe"], "--checkpoint", str(tr["ckpt"]), "--set", "eval.device=cuda",
                                         "--output-dir", str(t)], "eval.device: 'cuda' but CUDA is not available"),
+    ("eval-terminate-on-success", lambda t, tr: ["eval", tr["recipe"], "--checkpoint", str(tr["ckpt"]), "--set",
+                                                 "env.terminate_on_success=true", "--output-dir", str(t)],
+     "env.terminate_on_success: must be false for evaluation"),
     ("eval-without-env", lambda t, tr: ["eval", write(t / "r.yaml", tiny(env=None)), "--checkpoint", str(tr["ckpt"])],
      "evaluation needs an env section"),
     # -------- other commands
