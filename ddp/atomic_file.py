@@ -1,4 +1,5 @@
-"""Atomic file writes: a temp file in the same folder, flushed and fsynced, then renamed over the target.
+"""Atomic file writes: a temp file in the same folder, flushed and fsynced, renamed over the target, and the
+folder fsynced so that the rename is durable too.
 
 A reader (or a crash) sees the old file or the new one, never half of one. Used for checkpoints and
 detector calibrations.
@@ -29,4 +30,18 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO], None], *, binary
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    _fsync_dir(path.parent)  # the rename itself survives a power loss once the folder's entry is on disk
     return path
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # a platform or filesystem without directory handles: the rename stands as it is
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

@@ -50,6 +50,12 @@ class Ranks:
         torch.distributed.all_reduce(t)
         return (t / self.world).tolist()
 
+    def any(self, flag: bool, device) -> bool:
+        """Whether ``flag`` holds on some rank (a collective: all ranks call it)."""
+        if not self.enabled:
+            return bool(flag)
+        return self.all_reduce_mean([float(bool(flag))], device)[0] > 0
+
     def gather(self, obj) -> list:
         """Every rank's ``obj`` (a collective: all ranks call it)."""
         if not self.enabled:

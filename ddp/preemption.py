@@ -2,7 +2,11 @@
 
 A cluster scheduler sends SIGTERM (or SIGHUP) before it preempts a job.
 :func:`stop_signals` turns them into :class:`Preempted`, a ``KeyboardInterrupt``
-subclass, so the trainer's Ctrl-C path writes its checkpoint. While a
+subclass, so the trainer's Ctrl-C path writes its checkpoint. Inside the
+training loop :func:`stop_requests` only records them: the trainer stops at the
+next step boundary, where weights, optimiser, EMA, noise streams and step
+counter agree (a signal raised in the middle of an update would checkpoint a
+step half-applied), and under torchrun every rank stops at the same step. While a
 checkpoint is being written, :func:`signals_deferred` holds SIGINT, SIGTERM
 and SIGHUP back (a second Ctrl-C during the save is noted, not raised into the
 middle of the write) and reports what arrived once the file is complete.
@@ -70,3 +74,26 @@ def signals_deferred(received: list[int] | None = None):
 def interruption(signum: int) -> KeyboardInterrupt:
     """The exception a deferred signal stands for."""
     return KeyboardInterrupt() if signum == signal.SIGINT else Preempted(signum)
+
+
+@contextlib.contextmanager
+def stop_requests(requested: list[int] | None = None):
+    """Within the block, SIGINT / SIGTERM / SIGHUP are recorded in the yielded list for the caller to act on
+    at a point of its choosing; a second SIGINT (Ctrl-C pressed again) raises ``KeyboardInterrupt`` at once."""
+    requested = [] if requested is None else requested
+    if not _main_thread():
+        yield requested
+        return
+
+    def record(signum, frame):
+        if signum == signal.SIGINT and signal.SIGINT in requested:
+            raise KeyboardInterrupt
+        requested.append(signum)
+
+    signals = [s for s in (signal.SIGINT, *STOP_SIGNALS) if signal.getsignal(s) is not signal.SIG_IGN]
+    previous = {s: signal.signal(s, record) for s in signals}
+    try:
+        yield requested
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)

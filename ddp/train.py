@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +24,7 @@ from ddp.distributed import env_ranks, process_group
 from ddp.errors import CheckpointError, RecipeError
 from ddp.models.ddp_policy import FRAME_INDEX
 from ddp.models.ema import EMA
-from ddp.preemption import interruption, signals_deferred, stop_signals
+from ddp.preemption import interruption, signals_deferred, stop_requests, stop_signals
 from ddp.recipe import recipe_changes
 from ddp.run_dir import RunLock, remove_leftovers, trim_csv_logs
 
@@ -283,11 +284,19 @@ class Trainer:
             return dict(zip(sums, ranks.all_reduce_mean([v / count for v in sums.values()], self.device)))
 
         saved_step = step if state is not None else -1
+        # the noise streams as they were at the last step boundary: a checkpoint holds the state of a step
+        # boundary, whatever the streams drew since (an interruption in the middle of a step)
+        boundary_noise = {i: noises[i].get_state() for i in mine}
+        updating = False  # between optimizer.step() and the step counter: the step is half applied
+        requested: list[int] = []  # stop signals recorded in the loop (stop_requests), acted on at a boundary
+        agreed_stop = False  # every rank stops at this boundary (a collective decided it)
 
-        def checkpoint() -> Path:
+        def checkpoint(raise_deferred: bool = True) -> Path:
+            """Write last.pt for the step boundary reached; a signal that arrives during the write is
+            raised after it (``raise_deferred``) or, in the loop, recorded for the next boundary."""
             nonlocal saved_step
             # every rank's noise streams (a collective), written by rank 0 only
-            streams = {i: g for part in ranks.gather({i: noises[i].get_state().cpu() for i in mine})
+            streams = {i: g for part in ranks.gather({i: boundary_noise[i].cpu() for i in mine})
                        for i, g in part.items()}
             if not ranks.main:
                 saved_step = step
@@ -315,73 +324,95 @@ class Trainer:
                 path = save_checkpoint(ckpt_path, payload)
                 saved_step = step
             ranks.barrier()
-            if received:
+            if received and raise_deferred:
                 raise interruption(received[0])
+            requested.extend(received)
             return path
 
+        def stop_at_boundary() -> None:
+            """Stop here if a signal was recorded (on any rank: every rank stops at the same step)."""
+            nonlocal agreed_stop
+            if ranks.any(bool(requested), self.device):
+                agreed_stop = True
+                raise interruption(requested[0] if requested else signal.SIGTERM)
+
         try:
-            while epoch < cfg.epochs and step < total:
-                order = self._epoch_order(epoch, len(dataset))
-                while batch_in_epoch < per_epoch and step < total:
-                    idx = order[batch_in_epoch * cfg.batch_size : (batch_in_epoch + 1) * cfg.batch_size]
-                    optimizer.zero_grad(set_to_none=True)
-                    if refresh and (table_step is None or step - table_step >= refresh):
-                        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
-                            model.refresh_target_table(dataset.steps["point_cloud"], dataset.steps["agent_pos"])
-                        table_step = step
-                    size = idx.numel() // micro
-                    step_losses = {k: 0.0 for k in sums}
-                    for j, i in enumerate(mine):
-                        part = idx[i * size : (i + 1) * size]
-                        batch = dataset.batch(part).to(self.device)
-                        if refresh:
-                            batch.set(FRAME_INDEX, dataset.indices[part].to(self.device))
-                        # DDP all-reduces (averages over ranks) in the last backward of the step only
-                        sync = parallel is None or j == len(mine) - 1
-                        with (contextlib.nullcontext() if sync else parallel.no_sync()), \
-                                torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
-                            # the objective is the sum of the loss_* terms (TorchRL's convention)
-                            if parallel is None:
-                                losses = loss_fn(batch, generator=noises[i])
-                                objective = sum(losses[k] for k in losses.keys() if k.startswith("loss_"))
-                            else:
-                                objective, losses = parallel(batch, noises[i])
-                            # the mean over the global batch, whatever share of it this rank holds
-                            (objective * (ranks.world / micro)).backward()
-                        for k in step_losses:
-                            step_losses[k] += losses[k].detach().item() / len(mine)
-                    if cfg.grad_clip_norm:
-                        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
-                    optimizer.step()
-                    lr_sched.step()
-                    if ema is not None:
-                        ema.update(model)
-                    step += 1
-                    batch_in_epoch += 1
-                    samples += idx.numel()
-                    for k in sums:
-                        sums[k] += step_losses[k]
-                    count += 1
-                    bar.update(1)
-                    if step % cfg.log_every_steps == 0 or step == total:
-                        means = window_means()
-                        bar.set_postfix({k: f"{v:.4f}" for k, v in means.items()})
-                        if logger is not None:
-                            for k, v in means.items():
-                                logger.log_scalar(k, v, step=step)
-                            logger.log_scalar("lr", lr_sched.get_last_lr()[0], step=step)
-                        last_means, sums, count = means, {k: 0.0 for k in sums}, 0
-                if batch_in_epoch >= per_epoch:
-                    epoch, batch_in_epoch = epoch + 1, 0
-                    if epoch % cfg.checkpoint_every_epochs == 0:
-                        checkpoint()
+            with stop_requests(requested):
+                while epoch < cfg.epochs and step < total:
+                    order = self._epoch_order(epoch, len(dataset))
+                    while batch_in_epoch < per_epoch and step < total:
+                        idx = order[batch_in_epoch * cfg.batch_size : (batch_in_epoch + 1) * cfg.batch_size]
+                        optimizer.zero_grad(set_to_none=True)
+                        if refresh and (table_step is None or step - table_step >= refresh):
+                            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                                model.refresh_target_table(dataset.steps["point_cloud"], dataset.steps["agent_pos"])
+                            table_step = step
+                        size = idx.numel() // micro
+                        step_losses = {k: 0.0 for k in sums}
+                        for j, i in enumerate(mine):
+                            part = idx[i * size : (i + 1) * size]
+                            batch = dataset.batch(part).to(self.device)
+                            if refresh:
+                                batch.set(FRAME_INDEX, dataset.indices[part].to(self.device))
+                            # DDP all-reduces (averages over ranks) in the last backward of the step only
+                            sync = parallel is None or j == len(mine) - 1
+                            with (contextlib.nullcontext() if sync else parallel.no_sync()), \
+                                    torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                                # the objective is the sum of the loss_* terms (TorchRL's convention)
+                                if parallel is None:
+                                    losses = loss_fn(batch, generator=noises[i])
+                                    objective = sum(losses[k] for k in losses.keys() if k.startswith("loss_"))
+                                else:
+                                    objective, losses = parallel(batch, noises[i])
+                                # the mean over the global batch, whatever share of it this rank holds
+                                (objective * (ranks.world / micro)).backward()
+                            for k in step_losses:
+                                step_losses[k] += losses[k].detach().item() / len(mine)
+                        if cfg.grad_clip_norm:
+                            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
+                        updating = True  # the update, from the optimiser to the counters, is all or nothing
+                        optimizer.step()
+                        lr_sched.step()
+                        if ema is not None:
+                            ema.update(model)
+                        step += 1
+                        batch_in_epoch += 1
+                        boundary_noise = {i: noises[i].get_state() for i in mine}
+                        updating = False
+                        samples += idx.numel()
+                        for k in sums:
+                            sums[k] += step_losses[k]
+                        count += 1
+                        bar.update(1)
+                        if step % cfg.log_every_steps == 0 or step == total:
+                            means = window_means()
+                            bar.set_postfix({k: f"{v:.4f}" for k, v in means.items()})
+                            if logger is not None:
+                                for k, v in means.items():
+                                    logger.log_scalar(k, v, step=step)
+                                logger.log_scalar("lr", lr_sched.get_last_lr()[0], step=step)
+                            last_means, sums, count = means, {k: 0.0 for k in sums}, 0
+                        stop_at_boundary()
+                    if batch_in_epoch >= per_epoch:
+                        epoch, batch_in_epoch = epoch + 1, 0
+                        if epoch % cfg.checkpoint_every_epochs == 0:
+                            checkpoint(raise_deferred=False)
+                            stop_at_boundary()
         except KeyboardInterrupt:  # Ctrl-C, or Preempted (SIGTERM / SIGHUP)
-            bar.close()
-            if saved_step != step:
-                try:
-                    checkpoint()
-                except KeyboardInterrupt:
-                    pass  # a second Ctrl-C during the save: the save completed; stop as asked
+            # a further signal waits until the checkpoint is written (the save is what it asks for too)
+            with signals_deferred():
+                bar.close()
+                # Not when the interruption came in the middle of an update (only a second Ctrl-C, or an
+                # exception raised by the code, can do that: signals wait for a step boundary): that step is
+                # half applied, and the last checkpoint stands. Under torchrun only a stop all ranks agreed
+                # on saves: the save is a collective.
+                if saved_step != step and not updating and (agreed_stop or not ranks.enabled):
+                    checkpoint(raise_deferred=False)
+                elif updating and ranks.main:
+                    import warnings
+
+                    warnings.warn(f"training interrupted in the middle of step {step + 1}'s update: not saved; "
+                                  f"{ckpt_path} holds step {max(saved_step, 0)}", RuntimeWarning, stacklevel=2)
             raise
         else:
             bar.close()

@@ -76,3 +76,59 @@ def test_micro_batches_must_fit_the_batch_and_the_processes(tmp_path):
     finally:
         for k in ("WORLD_SIZE", "RANK", "LOCAL_RANK"):
             os.environ.pop(k)
+
+
+def _rank_pid(parent: int, rank: int) -> int | None:
+    """The pid of the torchrun worker with ``RANK=rank``: a child of ``parent`` (read from /proc)."""
+    for entry in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{entry}/environ", "rb") as f:
+                env = f.read().split(b"\0")
+        except OSError:
+            continue
+        if ppid == parent and f"RANK={rank}".encode() in env:
+            return int(entry)
+    return None
+
+
+def test_a_sigterm_to_one_rank_stops_every_rank_at_the_same_step_with_a_checkpoint(tmp_path):
+    """A stop signal reaching one worker only (not all at the same instant, as a scheduler's do) must not hang
+    the others in a collective: the ranks agree at the next step boundary, rank 0 writes the checkpoint of
+    that step, every rank exits."""
+    import signal
+    import time
+
+    r = copy.deepcopy(TINY)
+    r["train"].update(batch_size=16, micro_batches=2, max_steps=100000, epochs=100000, log_every_steps=1,
+                      checkpoint_every_epochs=100000)
+    recipe = tmp_path / "long.yaml"
+    recipe.write_text(yaml.safe_dump(r))
+    out = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", "ddp", "train", str(recipe), "--set", f"train.output_dir={out}", "--set", "train.num_threads=1",
+           "--quiet"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)  # its own process group: nothing outlives a failure
+    try:
+        log = out / "logs" / "scalars" / "loss.csv"
+        deadline = time.monotonic() + 300
+        while not (log.is_file() and len(log.read_text().splitlines()) >= 3):  # training is under way
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()[-3000:]
+            time.sleep(0.2)
+        pid = _rank_pid(proc.pid, 1)
+        assert pid is not None
+        os.kill(pid, signal.SIGTERM)
+        proc.wait(timeout=120)  # before: rank 1 left mid-step for the save's collectives, rank 0 hung
+    finally:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)  # the workers too, if they hung
+        except ProcessLookupError:
+            pass
+        proc.wait()
+    state = load_checkpoint(out / "last.pt")
+    assert 3 <= state["step"] < 100000 and len(state["noise_rng"]) == 2
+    rows = log.read_text().strip().splitlines()
+    assert int(rows[-1].split(",")[0]) == state["step"]  # the last logged step is the saved one

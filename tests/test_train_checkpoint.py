@@ -76,6 +76,61 @@ def test_resume_after_interruption_equals_uninterrupted_run(tiny_recipe, tmp_pat
     assert res4.total_seconds is None and load_checkpoint(tmp_path / "resumed/last.pt")["train_seconds"] is None
 
 
+@pytest.mark.parametrize("where", ["sigterm_after_the_noise_draws", "interrupt_during_the_ema_update"])
+def test_an_interruption_inside_a_step_never_checkpoints_half_a_step(where, tiny_recipe, tmp_path):
+    """A scheduler's SIGTERM lands wherever the step is, mostly in its forward / backward: training stops at
+    the next step boundary, so the checkpoint holds weights, optimiser, EMA, noise streams and step counter
+    of one and the same step, and the resumed run equals the uninterrupted one. An interruption raised in
+    the middle of the update itself (a second Ctrl-C) saves nothing: the last checkpoint stands."""
+    import signal
+
+    from ddp.models.ema import EMA
+    from ddp.preemption import Preempted
+
+    full = build(tiny_recipe)
+    res = full.train(output_dir=tmp_path / "full", progress=False)
+    reference = _weights(full)
+    stop_at = res.steps // 2 + 1  # the call (= step) in which the interruption lands
+
+    interrupted = build(tiny_recipe)
+    calls = {"n": 0}
+    if where == "sigterm_after_the_noise_draws":
+        orig = interrupted.model.loss
+
+        def loss(batch, generator=None):
+            out = orig(batch, generator=generator)  # the step's noise is drawn
+            calls["n"] += 1
+            if calls["n"] == stop_at:
+                os.kill(os.getpid(), signal.SIGTERM)
+            return out
+
+        interrupted.model.loss = loss
+        with pytest.raises(Preempted):
+            interrupted.train(output_dir=tmp_path / "resumed", progress=False)
+        assert load_checkpoint(tmp_path / "resumed/last.pt")["step"] == stop_at  # the step finished first
+    else:
+        orig_update = EMA.update
+
+        def update(self, model):
+            calls["n"] += 1
+            if calls["n"] == stop_at:  # the optimiser has stepped, the counters have not
+                raise KeyboardInterrupt
+            return orig_update(self, model)
+
+        EMA.update = update
+        try:
+            with pytest.raises(KeyboardInterrupt), pytest.warns(RuntimeWarning, match="not saved"):
+                interrupted.train(output_dir=tmp_path / "resumed", progress=False)
+        finally:
+            EMA.update = orig_update
+        assert load_checkpoint(tmp_path / "resumed/last.pt")["step"] < stop_at  # an epoch's checkpoint stands
+
+    resumed = build(tiny_recipe)
+    assert resumed.train(output_dir=tmp_path / "resumed", progress=False).steps == res.steps
+    for k, v in _weights(resumed).items():
+        assert torch.equal(v, reference[k]), k
+
+
 def test_checkpoint_round_trip_gives_identical_outputs(tiny_recipe, tmp_path):
     exp = build(tiny_recipe)
     exp.train(output_dir=tmp_path, progress=False)
@@ -128,6 +183,11 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
     monkeypatch.undo()
     assert load_checkpoint(path)["step"] == 1
     assert os.listdir(tmp_path) == ["c.pt"]
+    # the file is fsynced before the rename and its folder after it (the rename is durable)
+    synced, real_fsync = [], os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(os.path.isdir(f"/proc/self/fd/{fd}")), real_fsync(fd)))
+    save_checkpoint(path, {"step": 3})
+    assert synced == [False, True] and load_checkpoint(path)["step"] == 3
 
 
 def test_weights_of_another_recipe_are_refused(tiny_recipe, tmp_path):
