@@ -269,6 +269,28 @@ def test_pause_fingers_keeps_a_grasped_object_in_hand(make_env):
     np.testing.assert_allclose(moved, hand_moved, atol=0.01)
 
 
+def test_a_goal_marker_moves_with_the_displaced_goal(make_env):
+    """Soccer's net moves, and with it the success target; MetaWorld keeps the ``goal`` site on the target,
+    so a visible marker (the suite draws it into soccer's cloud) must move too, not mark the old place."""
+    env = make_env(task="soccer", num_points=512, crop_min=(-0.6, 0.3, 0.005), visible_sites=("goal",))
+    td = env.reset(seed=1000)
+    model, data = env.sim.model, env.sim.data
+    site = model.site("goal").id
+    old = data.site_xpos[site].copy()
+    np.testing.assert_allclose(old, env.sim._target_pos, atol=1e-9)
+    env.displace_objects([-0.2, 0.1, 0.0])
+    np.testing.assert_allclose(data.site_xpos[site], env.sim._target_pos, atol=1e-9)
+    np.testing.assert_allclose(data.site_xpos[site] - old, [-0.2, 0.1, 0.0], atol=1e-9)
+    td = env.reset(seed=1000)  # undone at reset
+    np.testing.assert_allclose(data.site_xpos[site], old, atol=1e-9)
+    # a task whose target stays (pick-place: the puck moves, the goal does not) keeps its marker
+    env = make_env(task="pick-place", **SMALL, visible_sites=("goal",))
+    env.reset(seed=1000)
+    before = env.sim.data.site_xpos[env.sim.model.site("goal").id].copy()
+    env.displace_objects([-0.2, -0.1, 0.0])
+    np.testing.assert_allclose(env.sim.data.site_xpos[env.sim.model.site("goal").id], before, atol=1e-9)
+
+
 def test_model_edits_are_undone_on_reset(make_env):
     fresh = make_env(task="coffee-pull", **SMALL)
     env = make_env(task="coffee-pull", chunk_len=1, displacement=True, oracle_tracking=True, **SMALL)

@@ -368,7 +368,10 @@ class MetaWorldEnv(MujocoCloudEnv):
 
         Free-joint bodies move through their joint's ``qpos`` (velocity set to
         zero); other bodies through ``model.body_pos`` (undone at reset). The
-        success target ``_target_pos`` moves by ``delta * task.goal_mask``.
+        success target ``_target_pos`` moves by ``delta * task.goal_mask``, and so
+        does a site that marked it and is not attached to a moved body (soccer's
+        ``goal`` site, which MetaWorld keeps at ``_target_pos``): a visible goal
+        marker stays on the moved net instead of showing the old place.
         """
         if self.task is None:
             raise ValueError(f"task {self.config.task!r} has no displaceable bodies (not one of the paper's tasks)")
@@ -385,10 +388,15 @@ class MetaWorldEnv(MujocoCloudEnv):
                 parent_rot = data.xmat[model.body_parentid[bid]].reshape(3, 3)
                 model.body_pos[bid] += parent_rot.T @ delta
         self._displacement += delta
-        self.sim._target_pos = np.asarray(self.sim._target_pos, dtype=np.float64) + delta * np.asarray(
-            self.task.goal_mask
-        )
+        old_target = np.asarray(self.sim._target_pos, dtype=np.float64).copy()
+        shift = delta * np.asarray(self.task.goal_mask)
+        self.sim._target_pos = old_target + shift
         self._mj.mj_forward(model, data)
+        if np.any(shift):  # sites still at the old target (not carried by a moved body) mark it: they follow
+            for sid in np.flatnonzero(np.linalg.norm(data.site_xpos - old_target, axis=1) < 1e-6):
+                parent_rot = data.xmat[model.site_bodyid[sid]].reshape(3, 3)
+                model.site_pos[sid] += parent_rot.T @ shift
+            self._mj.mj_forward(model, data)
 
     # ---------------------------------------------------------------- helpers
     def _apply_displacement(self, plan: Displacement) -> None:
