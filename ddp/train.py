@@ -133,6 +133,15 @@ class TrainResult:
     total_seconds: float | None = None
 
 
+def same_start(ranks, position: tuple[int, int, int], output_dir) -> None:
+    """Every rank starts from the same (step, epoch, batch) (a collective): each reads ``last.pt`` itself,
+    so an output folder that is not shared between nodes would resume some ranks and not others."""
+    starts = ranks.gather(tuple(position))
+    if len(set(starts)) > 1:
+        raise CheckpointError(f"{output_dir}: the processes would start from different (step, epoch, batch): "
+                              f"{starts} (rank order); train.output_dir must be one folder all ranks share")
+
+
 class _Objective(torch.nn.Module):
     """The model's training objective as a module (what DistributedDataParallel wraps):
     ``(batch, generator) -> (sum of the loss_* terms, the loss TensorDict)``."""
@@ -261,6 +270,7 @@ class Trainer:
                 table_step = int(state["target_table_step"])
             if cfg.logger == "csv" and ranks.main:
                 trim_csv_logs(self.output_dir, step)  # rows a killed run logged after its last checkpoint
+        same_start(ranks, (step, epoch, batch_in_epoch), self.output_dir)
         logger = self._logger() if ranks.main else None
         loss_fn = torch.compile(model.loss) if cfg.compile else model.loss
         parallel = None

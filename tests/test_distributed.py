@@ -132,3 +132,26 @@ def test_a_sigterm_to_one_rank_stops_every_rank_at_the_same_step_with_a_checkpoi
     assert 3 <= state["step"] < 100000 and len(state["noise_rng"]) == 2
     rows = log.read_text().strip().splitlines()
     assert int(rows[-1].split(",")[0]) == state["step"]  # the last logged step is the saved one
+
+
+def test_ranks_that_would_resume_from_different_steps_are_refused(tmp_path):
+    """Each rank reads last.pt itself: where train.output_dir is not shared (one folder per node), some
+    ranks would resume and others start afresh, and their collectives would go out of step."""
+    from ddp.distributed import Ranks
+    from ddp.errors import CheckpointError
+    from ddp.train import same_start
+
+    class TwoRanks(Ranks):
+        def __init__(self, starts):
+            super().__init__(rank=0, world=2)
+            self.starts = starts
+
+        def gather(self, obj):
+            assert obj == self.starts[0]  # this rank's own position is what it contributes
+            return self.starts
+
+    same_start(TwoRanks([(5, 1, 2), (5, 1, 2)]), (5, 1, 2), tmp_path)  # agreed: nothing to say
+    same_start(Ranks(), (7, 0, 7), tmp_path)  # one process: nothing to compare
+    with pytest.raises(CheckpointError, match=r"different \(step, epoch, batch\): \[\(5, 1, 2\), \(0, 0, 0\)\].*"
+                                              "one folder all ranks share"):
+        same_start(TwoRanks([(5, 1, 2), (0, 0, 0)]), (5, 1, 2), tmp_path)
