@@ -191,14 +191,19 @@ class DDPController(KeyedModule):
         """Where the model's weights are: observations go there, actions come back to the env's device."""
         return next(self.model.parameters()).device
 
-    def reset(self) -> None:
-        job, self._job = getattr(self, "_job", None), None  # a forecast for the previous episodes is dropped
+    def _drop_forecast(self, when: str) -> None:
+        """Wait for the background forecast, if one runs, and drop it; its error becomes a warning (no
+        cycle will collect it any more)."""
+        job, self._job = getattr(self, "_job", None), None
         error = job[1].exception() if job is not None else None  # waits for it
         if error is not None:
             import warnings
 
             warnings.warn(f"controller: the last background world-model forecast failed and was dropped at "
-                          f"reset: {error!r}", RuntimeWarning, stacklevel=2)
+                          f"{when}: {error!r}", RuntimeWarning, stacklevel=3)
+
+    def reset(self) -> None:
+        self._drop_forecast("reset")  # a forecast for the previous episodes
         self.states: list[EnvState] = []
         self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
         self.forecast_generator = torch.Generator(device=self.device).manual_seed(self.seed + FORECAST_STREAM)
@@ -217,17 +222,19 @@ class DDPController(KeyedModule):
         targets, e.g. coffee-pull's machine, are scenery the policy may see where they now are)."""
         if s.displaced is None or s.recovered is None:
             return False
+        return bool(s.recovered.any()) and not self._targets_to_recover(s)
+
+    def _targets_to_recover(self, s: EnvState) -> list[int]:
+        """The displaced objects that some subtask targets and that are not recovered yet."""
         targets = {sub.target for sub in self.subtasks if sub.target is not None}
-        pending = [k for k in targets if k < len(s.displaced) and bool(s.displaced[k]) and not bool(s.recovered[k])]
-        return bool(s.recovered.any()) and not pending
+        return [k for k in targets if k < len(s.displaced) and bool(s.displaced[k]) and not bool(s.recovered[k])]
 
     def _left_to_recover(self, s: EnvState) -> bool:
         """A displaced object that some subtask targets is not recovered yet (its recovery is to come);
         displaced objects no subtask targets are scenery that no recovery will bring back."""
         if s.displaced is None or s.recovered is None:
             return False
-        targets = [sub.target for sub in self.subtasks if sub.target is not None and sub.target < len(s.displaced)]
-        return any(bool(s.displaced[k]) and not bool(s.recovered[k]) for k in targets)
+        return bool(self._targets_to_recover(s))
 
     @staticmethod
     def _accepted_scene(s: EnvState, offsets: torch.Tensor | None, b: int) -> bool:
@@ -350,13 +357,7 @@ class DDPController(KeyedModule):
     def close(self) -> None:
         """Wait for a background forecast and stop its thread (also done when the controller is collected).
         A forecast that failed is reported as a warning (no cycle will collect its error any more)."""
-        job, self._job = self._job, None
-        error = job[1].exception() if job is not None else None  # waits for it
-        if error is not None:
-            import warnings
-
-            warnings.warn(f"controller: the last background world-model forecast failed and was dropped at "
-                          f"close: {error!r}", RuntimeWarning, stacklevel=2)
+        self._drop_forecast("close")
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
