@@ -233,36 +233,7 @@ class Trainer:
         refresh = model.target_refresh_every if model.uses_target_table else 0
         table_step = None
         if state is not None:
-            try:
-                model.load_state_dict(state["model"])
-                if ema is not None and "ema" in state:
-                    ema.load_state_dict(state["ema"])
-                optimizer.load_state_dict(state["optimizer"])
-                lr_sched.load_state_dict(state["lr_scheduler"])
-                # the optimiser restored the OLD schedule's lr; a changed max_steps / epochs must take
-                # effect from the very next update, so recompute it from this schedule at the step reached
-                factor = warmup_cosine(cfg.warmup_steps, total, cfg.lr_schedule)(lr_sched.last_epoch)
-                for group in optimizer.param_groups:
-                    group["lr"] = group["initial_lr"] * factor
-                lr_sched._last_lr = [g["lr"] for g in optimizer.param_groups]
-                saved = state["noise_rng"]
-                saved = saved if isinstance(saved, list) else [saved]  # one stream per micro-batch
-                try:
-                    for i in mine:
-                        noises[i].set_state(saved[i])
-                except RuntimeError:  # saved on another device (train.device may change on resume)
-                    import warnings
-
-                    for i in mine:
-                        noises[i].manual_seed(exp.recipe.seed * 1_000_003 + int(state["step"]) + 7919 * i)
-                    warnings.warn(f"{ckpt_path}: the diffusion-noise generator was saved on another device; "
-                                  "reseeded from (seed, step): the run goes on, not bit-identical to an "
-                                  "uninterrupted one", stacklevel=2)
-            except (RuntimeError, ValueError, KeyError, TypeError) as err:
-                from ddp.checkpoint import describe_mismatch
-
-                raise CheckpointError(f"{ckpt_path}: cannot resume into this recipe's model: "
-                                      f"{describe_mismatch(model, state['model']) or str(err).splitlines()[0]}") from None
+            self._restore(state, ckpt_path, optimizer=optimizer, lr_sched=lr_sched, ema=ema, noises=noises, total=total)
             step, epoch, batch_in_epoch = int(state["step"]), int(state["epoch"]), int(state["batch_in_epoch"])
             table = state.get("target_table") if refresh else None
             if table is not None and table.shape[0] == dataset.steps.shape[0]:  # else other demos: refresh now
@@ -357,27 +328,7 @@ class Trainer:
                             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
                                 model.refresh_target_table(dataset.steps["point_cloud"], dataset.steps["agent_pos"])
                             table_step = step
-                        size = idx.numel() // micro
-                        step_losses = {k: 0.0 for k in sums}
-                        for j, i in enumerate(mine):
-                            part = idx[i * size : (i + 1) * size]
-                            batch = dataset.batch(part).to(self.device)
-                            if refresh:
-                                batch.set(FRAME_INDEX, dataset.indices[part].to(self.device))
-                            # DDP all-reduces (averages over ranks) in the last backward of the step only
-                            sync = parallel is None or j == len(mine) - 1
-                            with (contextlib.nullcontext() if sync else parallel.no_sync()), \
-                                    torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
-                                # the objective is the sum of the loss_* terms (TorchRL's convention)
-                                if parallel is None:
-                                    losses = loss_fn(batch, generator=noises[i])
-                                    objective = sum(losses[k] for k in losses.keys() if k.startswith("loss_"))
-                                else:
-                                    objective, losses = parallel(batch, noises[i])
-                                # the mean over the global batch, whatever share of it this rank holds
-                                (objective * (ranks.world / micro)).backward()
-                            for k in step_losses:
-                                step_losses[k] += losses[k].detach().item() / len(mine)
+                        step_losses = self._backward(dataset, idx, noises, loss_fn, parallel, keys=list(sums))
                         if cfg.grad_clip_norm:
                             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
                         updating = True  # the update, from the optimiser to the counters, is all or nothing
@@ -438,6 +389,69 @@ class Trainer:
             seconds=seconds, samples_per_second=samples / max(seconds, 1e-9), checkpoint=path,
             total_seconds=None if earlier_seconds is None else earlier_seconds + seconds,
         )
+
+    def _restore(self, state: dict, ckpt_path: Path, *, optimizer, lr_sched, ema, noises: dict, total: int) -> None:
+        """Load a checkpoint's model, EMA, optimiser, schedule (recomputed for this recipe's length: a
+        changed max_steps / epochs takes effect from the next update) and noise streams."""
+        exp, cfg, model = self.exp, self.cfg, self.exp.model
+        try:
+            model.load_state_dict(state["model"])
+            if ema is not None and "ema" in state:
+                ema.load_state_dict(state["ema"])
+            optimizer.load_state_dict(state["optimizer"])
+            lr_sched.load_state_dict(state["lr_scheduler"])
+            # the optimiser restored the OLD schedule's lr: recompute it from this schedule at the step reached
+            factor = warmup_cosine(cfg.warmup_steps, total, cfg.lr_schedule)(lr_sched.last_epoch)
+            for group in optimizer.param_groups:
+                group["lr"] = group["initial_lr"] * factor
+            lr_sched._last_lr = [g["lr"] for g in optimizer.param_groups]
+            saved = state["noise_rng"]
+            saved = saved if isinstance(saved, list) else [saved]  # one stream per micro-batch
+            try:
+                for i, gen in noises.items():
+                    gen.set_state(saved[i])
+            except RuntimeError:  # saved on another device (train.device may change on resume)
+                import warnings
+
+                for i, gen in noises.items():
+                    gen.manual_seed(exp.recipe.seed * 1_000_003 + int(state["step"]) + 7919 * i)
+                warnings.warn(f"{ckpt_path}: the diffusion-noise generator was saved on another device; "
+                              "reseeded from (seed, step): the run goes on, not bit-identical to an "
+                              "uninterrupted one", stacklevel=3)
+        except (RuntimeError, ValueError, KeyError, TypeError) as err:
+            from ddp.checkpoint import describe_mismatch
+
+            raise CheckpointError(f"{ckpt_path}: cannot resume into this recipe's model: "
+                                  f"{describe_mismatch(model, state['model']) or str(err).splitlines()[0]}") from None
+
+    def _backward(self, dataset, idx: torch.Tensor, noises: dict, loss_fn, parallel, *, keys: list[str]) -> dict:
+        """Gradients of one optimiser step: this rank's micro-batches of the batch ``idx``, each with its
+        own noise stream, the objective scaled to the mean over the global batch. Returns the loss terms
+        ``keys`` averaged over the micro-batches."""
+        cfg, model, ranks = self.cfg, self.exp.model, self.ranks
+        mine = list(noises)
+        size = idx.numel() // cfg.micro_batches
+        step_losses = {k: 0.0 for k in keys}
+        for j, i in enumerate(mine):
+            part = idx[i * size : (i + 1) * size]
+            batch = dataset.batch(part).to(self.device)
+            if model.uses_target_table:
+                batch.set(FRAME_INDEX, dataset.indices[part].to(self.device))
+            # DDP all-reduces (averages over ranks) in the last backward of the step only
+            sync = parallel is None or j == len(mine) - 1
+            with (contextlib.nullcontext() if sync else parallel.no_sync()), \
+                    torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                # the objective is the sum of the loss_* terms (TorchRL's convention)
+                if parallel is None:
+                    losses = loss_fn(batch, generator=noises[i])
+                    objective = sum(losses[k] for k in losses.keys() if k.startswith("loss_"))
+                else:
+                    objective, losses = parallel(batch, noises[i])
+                # the mean over the global batch, whatever share of it this rank holds
+                (objective * (ranks.world / cfg.micro_batches)).backward()
+            for k in step_losses:
+                step_losses[k] += losses[k].detach().item() / len(mine)
+        return step_losses
 
     def _logger(self):
         """torchrl's logger for ``train.logger`` (csv, tensorboard, wandb) or None."""
