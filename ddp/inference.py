@@ -40,6 +40,8 @@ are not finite counts as OOD and acts from imagination when a forecast exists;
 otherwise, or if the sampled actions are not finite, ``on_nonfinite`` decides:
 ``"raise"`` (a one-line :class:`~ddp.safety.NonFiniteError`) or ``"hold"`` (the
 env's hold action: zero motion, gripper command unchanged; ``("ddp", "held")``).
+A chunk held for non-finite actions is forecast like any other (W_phi of its
+latents and the hold chunk), so the next cycle has a D_R-I and can imagine.
 """
 
 from __future__ import annotations
@@ -507,8 +509,9 @@ class DDPController(KeyedModule):
         # A robot never receives a non-finite action: an environment that can neither trust its
         # observation nor imagine, or whose actions came out non-finite, holds still (or we raise).
         held = [False] * B
+        grounded = [bool(finite[b]) or imagined[b] for b in range(B)]  # O_curr is real or imagined latents
         for b in range(B):
-            if not (finite[b] or imagined[b]):
+            if not grounded[b]:
                 why = "the observation (or its latents) is not finite and there is no imagined forecast to act from"
             elif not bool(torch.isfinite(actions[b]).all()):
                 why = "the policy produced a non-finite action"
@@ -520,9 +523,11 @@ class DDPController(KeyedModule):
             actions[b], held[b] = self._hold_or_raise(b, chunk_index[b], why), True
         if self.model.has_world_model:
             # O_pred for the next cycle is W_phi(O_curr, a_t): in ID the forecast D_R-I compares
-            # against, in OOD the autoregressive imagination the policy acts from (made lazily).
+            # against, in OOD the autoregressive imagination the policy acts from (made lazily). A held
+            # chunk is what executes: forecast from it, unless O_curr itself is no latent (a non-finite
+            # observation with nothing imagined).
             for b, s in enumerate(self.states):
-                s.pending = None if held[b] else (current[b], actions[b].to(dev))
+                s.pending = (current[b], actions[b].to(dev)) if grounded[b] else None
                 s.predicted, s.spread = None, None
             if self.forecast_every_cycle:  # now, or in the background while the chunk executes
                 self._forecast_next()

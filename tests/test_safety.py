@@ -115,6 +115,18 @@ def test_nonfinite_policy_output_is_held(exp_hold, monkeypatch):
     monkeypatch.setattr(exp_hold.model, "sample_actions", lambda c, generator=None: torch.full((c.shape[0], 16, 4), math.nan))
     out = ctrl(observations(exp_hold, chunk=1))
     assert out["ddp", "held"].item() and torch.equal(out["action"], torch.zeros(8, 4))
+    # the held chunk is what executes: the next cycle has its forecast, a D_R-I to score
+    monkeypatch.undo()
+    out = ctrl(observations(exp_hold, chunk=2))
+    assert not out["ddp", "held"].item() and torch.isfinite(out["ddp", "discrepancy"]).all()
+
+
+def test_nonfinite_observation_held_without_forecast_makes_none(exp_hold):
+    """Held for a non-finite observation with nothing imagined: its latents are no state to forecast from."""
+    ctrl = exp_hold.make_controller()
+    ctrl(poison(observations(exp_hold), "point_cloud"))
+    out = ctrl(observations(exp_hold, chunk=1))
+    assert torch.isnan(out["ddp", "discrepancy"]).all()
 
 
 def test_hold_repeats_absolute_dims_and_uses_reset_values():
