@@ -4,8 +4,8 @@
 checkpoint: the fitted statistic and threshold (the detector's ``calibration()``), the target
 false-alarm rate, how many ID episodes and which seeds produced it, and what it is valid for: a
 digest of the model's weights, the detector section, the ID env (the recipe's env section, the
-evaluation's overrides of it, the chunking) and the sampling setup (both schedulers' sections, the
-forecast samples). A later evaluation with the same four reuses it; anything else calibrates again and overwrites it. The file is plain
+calibration's overrides of it, the chunking), the episode count and its cap and the sampling setup (both
+schedulers' sections, the forecast samples). A later evaluation with the same reuses it; anything else calibrates again and overwrites it. The file is plain
 JSON (written atomically); loading it runs no code.
 """
 
@@ -39,13 +39,17 @@ def model_digest(model: torch.nn.Module) -> str:
     return h.hexdigest()[:16]
 
 
-def _key(model_hash: str, detector: dict, id_env: dict, episodes: int, seed: int, sampling: dict | None) -> dict:
-    return {"model": model_hash, "detector": detector, "id_env": id_env, "episodes": episodes, "seed": seed,
-            "sampling": sampling}
+def _key(model_hash: str, detector: dict, id_env: dict, episodes: int, seed: int, sampling: dict | None,
+         max_episodes: int | None) -> dict:
+    key = {"model": model_hash, "detector": detector, "id_env": id_env, "episodes": episodes, "seed": seed,
+           "sampling": sampling}
+    if max_episodes is not None:  # the cap on the ID episodes a detector may ask for (the count can grow to it)
+        key["max_episodes"] = max_episodes
+    return key
 
 
 def load_calibration(path, *, model_hash: str, detector: dict, id_env: dict, episodes: int, seed: int,
-                     sampling: dict | None = None) -> dict | None:
+                     sampling: dict | None = None, max_episodes: int | None = None) -> dict | None:
     """The saved calibration if ``path`` holds one made for exactly this model, detector, ID env and sampling
     setup (the schedulers' sections, the forecast samples: fewer denoising steps change the scores); else None."""
     path = Path(path)
@@ -57,16 +61,18 @@ def load_calibration(path, *, model_hash: str, detector: dict, id_env: dict, epi
         return None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         return None
-    want = json.loads(results_json.dumps(_key(model_hash, detector, id_env, episodes, seed, sampling)))
+    want = json.loads(results_json.dumps(_key(model_hash, detector, id_env, episodes, seed, sampling, max_episodes)))
     if data.get("valid_for") != want:
         return None
     return data.get("calibration")
 
 
 def save_calibration(path, calibration: dict, *, model_hash: str, detector: dict, id_env: dict, episodes: int,
-                     seed: int, sampling: dict | None = None, checkpoint: str | None = None) -> Path:
+                     seed: int, sampling: dict | None = None, checkpoint: str | None = None,
+                     max_episodes: int | None = None) -> Path:
     """Write the calibration atomically (temp file, fsync, rename)."""
     payload = {"format": FORMAT, "checkpoint": checkpoint,
-               "valid_for": _key(model_hash, detector, id_env, episodes, seed, sampling), "calibration": calibration}
+               "valid_for": _key(model_hash, detector, id_env, episodes, seed, sampling, max_episodes),
+               "calibration": calibration}
     text = results_json.dumps(payload)
     return atomic_write(path, lambda f: f.write(text), binary=False)

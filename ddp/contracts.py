@@ -128,7 +128,12 @@ class Trigger(Protocol):
 
 
 class Env(Protocol):
-    """A TorchRL env (``EnvBase``) producing ``point_cloud`` [task.num_points, task.point_dim] and ``agent_pos``."""
+    """A TorchRL env (``EnvBase``) producing ``point_cloud`` [task.num_points, task.point_dim] and ``agent_pos``.
+
+    Optional, on its config dataclass: ``held_out_initial_states() -> dict``, config overrides under which
+    its resets draw none of the initial states this config's resets draw (for an env whose states repeat
+    across seeds); a detector's calibration rollouts use them unless ``eval.calibration_env`` is set.
+    """
 
     action_hold: Any  # ddp.safety.HoldSpec: how its actions hold still (controller.on_nonfinite: hold)
 

@@ -214,7 +214,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
     from ddp.contracts import NeedMoreEpisodes
     from ddp.detectors.discrepancy import DiscrepancyConfig
     from ddp.detectors.scores import fit_calibration
-    from ddp.eval_runner import more_calibration_episodes
+    from ddp.eval_runner import calibration_episodes as calibration_rollouts, more_calibration_episodes
 
     if not exp.model.has_world_model:
         raise ValueError(f"{exp.recipe.name}: detection needs a world model (world_model.enabled is false)")
@@ -226,7 +226,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
     variants = SCORE_VARIANTS if variants is None else variants
     runs = dict(progress=progress, num_envs=num_envs, parallel=parallel)
     if rollouts is None:
-        cal_eps = _rollouts(exp, "id", episodes=n_cal, seed=seed + 100_000, env={}, **runs)
+        cal_eps = calibration_rollouts(exp, episodes=n_cal, seed=seed + 100_000, **runs)  # held-out ID states
         test = {"id": _rollouts(exp, "id", episodes=episodes, seed=seed, env={}, **runs)}
         for name in disturbances:
             test[name] = _rollouts(exp, name, episodes=episodes, seed=seed, env=dict(env or {}), **runs)

@@ -16,7 +16,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ddp.envs.chunked import ChunkedEnv, chunk_render_config
-from ddp.errors import RecipeError
+from ddp.errors import RecipeError, suggest
 from ddp.protocols.base import EvalProtocol
 from ddp.video import VideoSettings
 
@@ -193,15 +193,36 @@ def _summarise(traj, env_index: int, seed: int, latents: bool = False) -> dict:
     return out
 
 
+def calibration_env(exp) -> dict:
+    """The env overrides of a detector's calibration rollouts: the ``id`` protocol's (``eval.env``,
+    ``eval.max_steps``: episodes as long as evaluated ones) and ``eval.calibration_env``, or where that is
+    unset, the env's own held-out draw of initial states (its config's ``held_out_initial_states()``, for
+    envs whose initial states repeat across seeds, e.g. MetaWorld's 50 per MT1 draw): the calibration's ID
+    episodes never replay an evaluated initial state."""
+    from ddp.protocols.base import get_protocol
+
+    cfg = exp.recipe.eval
+    overrides = env_overrides(exp, get_protocol("id"), cfg.max_steps)
+    extra = cfg.calibration_env
+    if extra is None:
+        config = dataclasses.replace(exp.parts["env"].config, **overrides)
+        held_out = getattr(config, "held_out_initial_states", None)
+        extra = held_out() if callable(held_out) else {}
+    fields = {f.name for f in dataclasses.fields(exp.parts["env"].config)}
+    missing = sorted(set(extra) - fields)
+    if missing:
+        raise RecipeError(f"env '{exp.parts['env'].plugin.name}' has no option {', '.join(missing)}"
+                          f"{suggest(missing[0], fields)}", source=exp.source, key="eval.calibration_env")
+    return {**overrides, **extra}
+
+
 def calibration_episodes(exp, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
                          parallel: bool = False) -> list[dict]:
     """ID rollouts of the base policy with the world model forecasting every cycle, each with its
-    chunks' real and forecast latent windows (what a discrepancy detector is calibrated on)."""
-    from ddp.protocols.base import get_protocol
-
+    chunks' real and forecast latent windows (what a discrepancy detector is calibrated on), in the env
+    of :func:`calibration_env`."""
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
-    # the id protocol's env (eval.env, eval.max_steps): calibration episodes are as long as evaluated ones
-    overrides = env_overrides(exp, get_protocol("id"), exp.recipe.eval.max_steps)
+    overrides = calibration_env(exp)
     return rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=overrides, num_envs=num_envs,
                             desc="calibrate detector", progress=progress, parallel=parallel, record_latents=True)
 

@@ -20,7 +20,7 @@ from ddp.detection import detection_metrics
 from ddp.errors import RecipeError
 from ddp.eval_report import markdown_table, protocol_result, write_report  # noqa: F401 (re-exported)
 from ddp.eval_runner import (  # noqa: F401 (re-exported: the runner's public names)
-    ChunkedEnvFactory, calibrate_detector, calibration_episodes, env_factory, env_overrides, make_chunked_env,
+    ChunkedEnvFactory, calibrate_detector, calibration_env, calibration_episodes, env_factory, env_overrides, make_chunked_env,
     rollout_episodes,
 )
 from ddp.protocols.base import check_protocols, get_protocol
@@ -147,12 +147,13 @@ def _calibration(exp, detector, section: dict, *, seed: int, runs: dict) -> dict
     cfg = exp.recipe.eval
     # the ID env the scores come from: the recipe's env section (cloud size, camera, noise, ...), the
     # evaluation's overrides of it, and the chunking (a chunk's actions and the stacked observations)
-    id_env = {"env": exp.resolved["env"], "overrides": env_overrides(exp, get_protocol("id"), cfg.max_steps),
+    id_env = {"env": exp.resolved["env"], "overrides": calibration_env(exp),
               "obs_steps": exp.model.obs_steps, "action_steps": exp.model.action_steps}
     sampling = {"policy": exp.resolved["policy"]["scheduler"], "world_model": exp.resolved["world_model"]["scheduler"],
                 "forecast_samples": exp.recipe.controller.forecast_samples}
     key = dict(model_hash=model_digest(exp.model), detector=section, id_env=id_env,
-               episodes=cfg.calibration_episodes, seed=seed, sampling=sampling)
+               episodes=cfg.calibration_episodes, max_episodes=cfg.max_calibration_episodes, seed=seed,
+               sampling=sampling)
     path = calibration_path(exp.checkpoint_path) if exp.checkpoint_path is not None else None
     saved = load_calibration(path, **key) if path is not None else None
     if saved is not None:

@@ -204,6 +204,10 @@ class EvalConfig:
     video_camera: str | None = None  # the env's camera name (None: its default)
     output_dir: str = "runs/{name}/eval"
     env: dict = field(default_factory=dict)  # env config overrides for evaluation (e.g. held-out initial states)
+    # env config overrides for a detector's calibration rollouts, on top of the id protocol's env; None: the
+    # env's own held-out initial states (MetaWorld: the next MT1 draw), so no calibration episode replays an
+    # evaluated one; {}: the evaluation's env, on seeds eval.seed + 100000 on
+    calibration_env: dict | None = None
     env_oracle_tracking: bool = False  # OOD protocols with tracking: the env's oracle tracks and snaps back
 
     def __post_init__(self):

@@ -140,6 +140,12 @@ def test_a_saved_calibration_serves_only_the_env_it_was_made_in(exp, tmp_path, m
     assert len(calls) == 2
     evaluate_once()
     assert len(calls) == 2  # saved again, for the new env
+    exp.recipe.eval.max_calibration_episodes += 1  # a cap that may change how many episodes it takes
+    evaluate_once()
+    assert len(calls) == 3
+    exp.recipe.eval.calibration_env = {"cube_x": [-0.1, 0.0]}  # calibrated on other initial states
+    evaluate_once()
+    assert len(calls) == 4
 
 
 def test_discrepancy_needs_a_world_model(tiny_recipe):

@@ -168,9 +168,11 @@ def test_detect_rolls_out_more_calibration_episodes_once_for_every_statistic(tin
     exp = build(tiny_recipe)
     variants = {"per_chunk": {"per_chunk": True}, "per_chunk_all": {"per_chunk": True, "threshold_on": "all"}}
     rep = detection.detect(exp, episodes=4, calibration_episodes=40, variants=variants, progress=False)
-    assert extra and extra[0][0] == 100_000 + exp.recipe.eval.seed + 40  # the next unused seed
+    first = 100_000 + exp.recipe.eval.seed
+    assert extra[0] == (first, 40)  # the calibration rollouts ddp eval makes (held-out initial states)
+    assert len(extra) > 1 and extra[1][0] == first + 40  # then more, from the next unused seed
     n_cal = rep["calibration_episodes"]
-    assert n_cal == 40 + sum(n for _, n in extra) and len(rep["rollouts"]["calibration"]) == n_cal
+    assert n_cal == sum(n for _, n in extra) and len(rep["rollouts"]["calibration"]) == n_cal
     rows = {r["score"]: r for r in rep["rows"]}
     assert rows["per_chunk"]["threshold_on"] == "successful" and rows["per_chunk"]["threshold_episodes"] >= 19
     assert rows["per_chunk_all"]["threshold_episodes"] == n_cal // 2  # the same episodes, every held-out one

@@ -328,6 +328,32 @@ def test_same_seed_same_episode(make_env):
     assert env_a.reset()["privileged", "task_index"].item() == 0, "unseeded resets continue with seed + 1"
 
 
+def test_calibration_draws_initial_states_the_evaluation_never_does(make_env):
+    """Seeds 50 apart replay one layout; a detector's calibration rollouts (seeds eval.seed + 100000) go to
+    the next MT1 draw instead, so none replays an evaluated layout."""
+    from ddp import build
+    from ddp.eval_runner import calibration_env
+
+    evaluated = MetaWorldEnvConfig(task="pick-place", seed_tasks=1, **SMALL)
+    env = make_env(**{**evaluated.__dict__, "visible_sites": ()})
+    first = env.reset(seed=1000)["privileged", "state"]
+    assert torch.equal(env.reset(seed=101000)["privileged", "state"], first)  # 101000 % 50 == 1000 % 50
+    held_out = evaluated.held_out_initial_states()
+    assert held_out == {"seed_tasks": 2}
+    other = make_env(**{**evaluated.__dict__, "visible_sites": (), **held_out})
+    calibrated = torch.stack([other.reset(seed=101000 + i)["privileged", "state"] for i in range(50)])
+    evaluated_states = torch.stack([env.reset(seed=1000 + i)["privileged", "state"] for i in range(50)])
+    assert torch.cdist(calibrated[:, 4:7], evaluated_states[:, 4:7]).min() > 1e-4  # no object start shared
+
+    exp = build("recipes/metaworld/quickstart_ddp.yaml")
+    assert calibration_env(exp)["seed_tasks"] == 2  # eval.env says seed_tasks 1
+    exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.calibration_env={}"])
+    assert calibration_env(exp)["seed_tasks"] == 1  # asked for the evaluation's own env
+    exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.calibration_env={seed_task: 3}"])
+    with pytest.raises(RecipeError, match="eval.calibration_env.*no option seed_task.*seed_tasks"):
+        calibration_env(exp)
+
+
 # ------------------------------------------------------ occlusion, rendering
 
 

@@ -120,7 +120,9 @@ class MetaWorldEnvConfig(ObservationOptions):
 
     Attributes:
         task: MetaWorld v3 task name without "-v3", e.g. ``"button-press"``.
-        seed_tasks: seed of ``metaworld.MT1`` (which 50 initial states exist).
+        seed_tasks: seed of ``metaworld.MT1`` (which 50 initial states exist). The recipes train on draw 0,
+            evaluate on draw 1 (``eval.env``) and calibrate detectors on draw 2
+            (:meth:`held_out_initial_states`).
         task_indices: ``[start, stop)`` range of MT1 train tasks that resets draw from.
         max_episode_steps: steps before ``truncated``.
         terminate_on_success: end the episode (``terminated``) at the first success.
@@ -201,6 +203,13 @@ class MetaWorldEnvConfig(ObservationOptions):
             raise ValueError(f"displacement_chunk must be >= 0; got {self.displacement_chunk}")
         if self.displacement_delta is not None and len(self.displacement_delta) != 3:
             raise ValueError(f"displacement_delta needs 3 entries; got {self.displacement_delta}")
+
+    def held_out_initial_states(self) -> dict:
+        """Overrides under which no reset draws an initial state that this config's resets draw: the next
+        MT1 draw (``seed_tasks + 1``). A reset here picks state ``seed % 50`` of one draw, so seeds 50 apart
+        repeat a layout; the detector's calibration rollouts (``ddp eval``, ``ddp detect``) use these, else
+        their seeds (the evaluation's + 100000) would replay the evaluated layouts."""
+        return {"seed_tasks": self.seed_tasks + 1}
 
     @property
     def task_spec(self) -> MetaWorldTask | None:
