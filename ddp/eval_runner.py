@@ -97,8 +97,9 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
     """Run ``episodes`` seeded episodes with a torchrl Collector; one dict of results per episode.
 
     ``num_envs > 1`` steps several envs as one batch: in this process (``SerialEnv``) or, with
-    ``parallel=True``, each in its own worker process (``ParallelEnv``). Env ``i`` runs the
-    seeds ``seed + i * ceil(episodes / num_envs) + 0, 1, ...``. ``video`` records each env's
+    ``parallel=True``, each in its own worker process (``ParallelEnv``). The episodes are seeds
+    ``seed, seed + 1, ..., seed + episodes - 1`` whatever ``num_envs``: env ``i`` runs a consecutive share of
+    them (``episodes // num_envs``, one more for the first ``episodes % num_envs`` envs). ``video`` records each env's
     first ``video.episodes`` episodes. ``record_latents`` keeps each chunk's real and forecast latent
     windows (``latent_real`` / ``latent_pred`` arrays [chunks, M, D]) for detector calibration.
     """
@@ -107,10 +108,11 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
 
     chunks = _chunks_per_episode(exp, overrides)
     num_envs = max(1, min(num_envs, episodes))
-    per_env = math.ceil(episodes / num_envs)
+    quota = [episodes // num_envs + (i < episodes % num_envs) for i in range(num_envs)]
+    starts = [seed + sum(quota[:i]) for i in range(num_envs)]  # env i: seeds starts[i] ... + quota[i] - 1
 
     def factory(i: int) -> ChunkedEnvFactory:
-        first = seed + i * per_env
+        first = starts[i]
         vid = None if video is None else dataclasses.replace(video, first_seed=first)
         return env_factory(exp, first, overrides, vid)
 
@@ -121,20 +123,20 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
         env = batched(num_envs, [factory(i) for i in range(num_envs)])
     controller.reset()
     collector = Collector(
-        env, controller, frames_per_batch=chunks * num_envs, total_frames=chunks * num_envs * per_env,
+        env, controller, frames_per_batch=chunks * num_envs, total_frames=chunks * num_envs * max(quota),
         reset_when_done=True, trust_policy=True, auto_register_policy_transforms=False,
     )
     results: list[dict] = []
+    done = [0] * num_envs  # episodes kept per env (one per env and batch; an env past its share runs idle)
     bar = tqdm(total=episodes, desc=desc, disable=not progress, unit="ep")
     try:
         for batch in collector:
             batch = batch.reshape(num_envs, chunks) if batch.batch_dims == 1 else batch
             for i in range(num_envs):
-                traj = batch[i]
-                if len(results) >= episodes:
-                    break
-                ep = i * per_env + len([r for r in results if r["env"] == i])
-                results.append(_summarise(traj, env_index=i, seed=seed + ep, latents=record_latents))
+                if done[i] >= quota[i]:
+                    continue
+                results.append(_summarise(batch[i], env_index=i, seed=starts[i] + done[i], latents=record_latents))
+                done[i] += 1
                 bar.update(1)
                 bar.set_postfix(success=f"{np.mean([r['success'] for r in results]):.2f}")
             if len(results) >= episodes:

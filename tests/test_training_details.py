@@ -341,6 +341,32 @@ def test_parallel_evaluation_runs_the_same_seeded_episodes_as_serial(tiny_recipe
     assert not torch.equal(observed[True][1000][0], observed[True][1002][0])
 
 
+def test_envs_that_do_not_divide_the_episodes_run_the_same_seeds(tiny_recipe, monkeypatch):
+    """10 episodes on 3 or 4 envs are seeds 1000-1009, as on one env, each from its own seed's first observation."""
+    import ddp.eval_runner as runner
+
+    exp = build(tiny_recipe)
+    fit_normalizer(exp)
+    overrides = {"max_episode_steps": 8}
+    first_obs = {}
+    orig_summarise = runner._summarise
+
+    def recording_summarise(traj, env_index, seed, **kwargs):
+        first_obs[seed] = traj[0]["agent_pos"].clone()
+        return orig_summarise(traj, env_index=env_index, seed=seed, **kwargs)
+
+    monkeypatch.setattr(runner, "_summarise", recording_summarise)
+    for num_envs, envs in ((3, [0] * 4 + [1] * 3 + [2] * 3), (4, [0] * 3 + [1] * 3 + [2] * 2 + [3] * 2)):
+        first_obs.clear()
+        ctrl = exp.make_controller(detector={"name": "never"}, tracker=False)
+        runs = runner.rollout_episodes(exp, ctrl, episodes=10, seed=1000, overrides=overrides, num_envs=num_envs,
+                                       progress=False)
+        assert [r["seed"] for r in runs] == list(range(1000, 1010)), num_envs
+        assert [r["env"] for r in runs] == envs
+        for seed in range(1000, 1010):
+            assert torch.equal(first_obs[seed], runner.make_chunked_env(exp, seed, overrides).reset()["agent_pos"])
+
+
 # --------------------------------------------------------------------------- 7. DP3 encoder parity
 
 
