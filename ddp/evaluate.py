@@ -57,6 +57,10 @@ def settle(exp, protocols, *, episodes, output_dir, num_envs, seed, video, paral
         check_protocols(protocols, source="--protocols")
         if not protocols:
             raise RecipeError("no protocol given", source="--protocols")
+    for name in protocols:
+        if get_protocol(name).imagine and not exp.model.has_world_model:
+            raise RecipeError(f"protocol {name} acts on imagined latents: it needs a world model "
+                              "(world_model.enabled is false)", source=exp.source, key="eval.protocols")
     episodes = cfg.episodes if episodes is None else episodes
     num_envs = cfg.num_envs if num_envs is None else num_envs
     for flag, value in (("--episodes", episodes), ("--num-envs", num_envs)):

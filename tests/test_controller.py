@@ -8,7 +8,7 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs
 
-from conftest import DELTA, displaced_exp
+from conftest import DELTA, displaced_exp, fit_normalizer
 from ddp import build
 from ddp.errors import RecipeError
 from ddp.calibration_file import calibration_path
@@ -146,6 +146,20 @@ def test_a_saved_calibration_serves_only_the_env_it_was_made_in(exp, tmp_path, m
     exp.recipe.eval.calibration_env = {"cube_x": [-0.1, 0.0]}  # calibrated on other initial states
     evaluate_once()
     assert len(calls) == 4
+
+
+def test_imagination_protocols_need_a_world_model_and_imagine_whatever_the_recipe(tiny_recipe, tmp_path):
+
+    tiny_recipe["controller"] = {**tiny_recipe.get("controller", {}), "imagine": False}
+    e = build(tiny_recipe)
+    fit_normalizer(e)
+    rep = e.evaluate(["imagination_100"], episodes=1, output_dir=tmp_path, progress=False)
+    imagined = rep["protocols"]["imagination_100"]["per_episode"][0]["imagined"]
+    assert imagined[0] == 0 and all(imagined[1:])  # real latents at the first chunk only
+    tiny_recipe["world_model"]["enabled"] = False
+    e = build(tiny_recipe)
+    with pytest.raises(RecipeError, match="protocol imagination_50 acts on imagined latents: it needs a world model"):
+        e.evaluate(["id", "imagination_50"], episodes=1, output_dir=tmp_path, progress=False)
 
 
 def test_discrepancy_needs_a_world_model(tiny_recipe):

@@ -15,7 +15,7 @@ class EvalProtocol:
     env: dict = field(default_factory=dict)  # env config overrides (an env without such a field is an error)
     env_if_supported: dict = field(default_factory=dict)  # overrides applied only where the env has the field
     detector: dict | None = None  # a detector section; None: the recipe's
-    imagine: bool | None = None  # None: the recipe's
+    imagine: bool | None = None  # None: the recipe's; True: the protocol is imagination (needs a world model)
     tracker: bool = True  # False: no tracker and no recovery
     occlusion: bool = False  # blind the camera at eval.occlusion_chunk for eval.occlusion_chunks
     env_tracking: bool = False  # honour eval.env_oracle_tracking (the env's own oracle tracks)

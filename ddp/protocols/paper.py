@@ -16,6 +16,8 @@ ood_ddp_oracle      displacement                the paper's simulation protocol:
                                                 tracking where ``eval.env_oracle_tracking``
 imagination_10/50/  in distribution             real latents replaced by imagined ones with
 100                                             probability 0.1 / 0.5 / 1 after the first chunk
+                                                (whatever controller.imagine; a model without
+                                                a world model is refused)
 occlusion           camera blind for some       the recipe's detector; imagination through it
                     chunks
 occlusion_oracle    camera blind for some       oracle detector (knows when the camera is
@@ -57,7 +59,7 @@ _protocol("ood_ddp_oracle", "displaced objects, the paper's simulation protocol:
 for _p in (10, 50, 100):
     _protocol(f"imagination_{_p}", f"in distribution, real latents replaced by imagined ones with probability "
                                    f"{_p / 100:g} after the first chunk",
-              detector={"name": "substitution", "p": _p / 100}, tracker=False)
+              detector={"name": "substitution", "p": _p / 100}, imagine=True, tracker=False)
 _protocol("occlusion", "the camera is blind for eval.occlusion_chunks chunks; the recipe's detector",
           occlusion=True, tracker=False)
 _protocol("occlusion_oracle", "the camera is blind for eval.occlusion_chunks chunks; the oracle detector",
