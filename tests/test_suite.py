@@ -392,6 +392,25 @@ def test_aggregation_math(tmp_path):
     assert (tmp_path / "table.csv").read_text().splitlines()[0].startswith("method,protocol,a_mean,a_std")
 
 
+def test_an_average_over_tasks_with_different_seeds_or_missing_tasks_says_so(tmp_path):
+    """Task a has seeds 0-2, b seeds 0-1: the average is the mean of the task means, with no std (one over
+    the shared seeds would describe other runs than the mean), marked; a method short of a task is marked too."""
+    results = [_result("a", "ddp", 0, {"id": 1.0}), _result("a", "ddp", 1, {"id": 0.9}),
+               _result("a", "ddp", 2, {"id": 0.2}), _result("b", "ddp", 0, {"id": 0.5}),
+               _result("b", "ddp", 1, {"id": 0.6}), _result("a", "dp3", 0, {"id": 0.4}),
+               _result("a", "dp3", 1, {"id": 0.6})]
+    table = aggregate(results)
+    avg = table["cells"]["ddp|id|avg:mw"]
+    assert avg["mean"] == pytest.approx((0.7 + 0.55) / 2) and "std" not in avg and avg["uneven_seeds"]
+    assert avg["seeds"] == [0, 1] and "missing_tasks" not in avg
+    dp3 = table["cells"]["dp3|id|avg:mw"]
+    assert dp3["missing_tasks"] == ["b"] and dp3["std"] == pytest.approx(math.sqrt(0.02))
+    write_suite_report(results, tmp_path, "t")
+    md = (tmp_path / "table.md").read_text()
+    assert "| ddp | id | 70 ± 44 (n=30) | 55 ± 7 (n=20) | 62 † |" in md
+    assert "| dp3 | id | 50 ± 14 (n=20) | - | 50 ± 14 (1/2 tasks) |" in md
+
+
 def test_report_states_what_the_runs_cost(tmp_path):
     results = []
     for seed, (train, wall) in enumerate([(600.0, 900.0), (1200.0, 1500.0), (900.0, 1200.0)]):

@@ -116,8 +116,13 @@ def aggregate(results: list[dict]) -> dict:
                 per_seed = [float(np.mean([per_task_seed[t][s] for t in have])) for s in seeds]
                 task_means = [float(np.mean(list(per_task_seed[t].values()))) for t in have]
                 cell = {"mean": float(np.mean(task_means)), "tasks": have, "seeds": seeds, "per_seed": per_seed}
-                if len(per_seed) > 1:
+                uneven = any(set(per_task_seed[t]) != set(seeds) for t in have)
+                if uneven:  # the mean uses every run, a std over the shared seeds would describe fewer: none
+                    cell["uneven_seeds"] = True
+                elif len(per_seed) > 1:
                     cell["std"] = float(np.std(per_seed, ddof=1))
+                if len(have) < len(names):
+                    cell["missing_tasks"] = [t for t in names if t not in have]
                 cells[f"{m}|{p}|avg:{bench}"] = cell
     return {"rows": rows, "tasks": tasks, "benchmarks": benchmarks, "cells": cells}
 
@@ -133,6 +138,10 @@ def format_cell(cell: dict | None) -> str:
         text += f" [{100 * lo:.0f}, {100 * hi:.0f}]"
     if "episodes" in cell:
         text += f" (n={cell['episodes']})"
+    if cell.get("uneven_seeds"):
+        text += " †"
+    if cell.get("missing_tasks"):
+        text += f" ({len(cell['tasks'])}/{len(cell['tasks']) + len(cell['missing_tasks'])} tasks)"
     return text
 
 
@@ -146,7 +155,9 @@ def markdown(table: dict, title: str, reference: dict | None = None) -> str:
     ref = reference_cells(table, reference)
     label = reference["label"] if reference else ""
     lines = [f"{title}: success rate in %, mean ± std over seeds (one seed: [95 % Wilson interval]); "
-             "n = episodes over all seeds" + (f"; rows marked ({label}) are the published numbers" if ref else ""),
+             "n = episodes over all seeds; an average is the mean of its task means (†: its tasks have "
+             "different seeds, so no std; (k/n tasks): runs of only k tasks)"
+             + (f"; rows marked ({label}) are the published numbers" if ref else ""),
              "", "| method | protocol | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
     for m, p in table["rows"]:
         cells = [format_cell(table["cells"].get(f"{m}|{p}|{c}")) for c in cols]
