@@ -276,7 +276,9 @@ def cmd_suite(args) -> int:
         except (SuiteRunsFailed, SuiteTimeLimit) as err:  # the table still shows what finished
             failed = err
     done = ResultStore(suite.results_dir).all(suite.runs)  # the table covers every stored run
-    results = [done[r.run_id] for r in suite.runs if r.run_id in done]
+    # labelled as the suite file labels them now (a task's benchmark is no part of a run's identity)
+    results = [{**done[r.run_id], "task": r.task, "method": r.method, "seed": r.seed, "benchmark": r.benchmark}
+               for r in suite.runs if r.run_id in done]
     if not results:
         if isinstance(failed, SuiteTimeLimit):
             print(f"ddp: {failed} (no finished run yet: no table)", file=sys.stderr)

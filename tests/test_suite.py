@@ -113,6 +113,23 @@ def test_dry_run_says_which_runs_are_stored_stale_or_resume(suite_file, capsys):
     assert not (suite_file.parent / "runs/suites/tiny_suite/near__ddp__seed0/log.txt").exists()  # nothing ran
 
 
+def test_the_report_labels_stored_runs_as_the_suite_file_does_now(suite_file, capsys):
+    """A task moved to another benchmark in the suite file is averaged there, not under the label its stored
+    results were written with (the benchmark is no part of a run's identity: they stay done)."""
+    from ddp.cli import main
+
+    suite = load_suite(suite_file)
+    store = ResultStore(suite.results_dir)
+    for run in suite.runs:
+        store.save(run, _result(run.task, run.method, run.seed, {"id": 1.0}, bench=run.benchmark))
+    data = yaml.safe_load(suite_file.read_text())
+    data["tasks"]["far"]["benchmark"] = "tiny_suite"  # was synthetic
+    suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert main(["suite", str(suite_file), "--report"]) == 0
+    table = json.loads((suite.results_dir / "table.json").read_text())
+    assert table["benchmarks"] == {"tiny_suite": ["near", "far"]}
+
+
 def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
     import ddp.suite.runner as runner
 
