@@ -3,11 +3,12 @@
 A suite's run trains in its own folder and resumes the ``last.pt`` it finds there (a finished run whose
 result went stale, or an interrupted one). When the suite file changed the run's recipe in a way training
 cannot continue from (any key outside ``ddp.train.RESUMABLE``: the observations, the data, the model, the
-optimiser), or lowered ``train.max_steps`` below the checkpoint's step, the run has to train again from
-scratch. :func:`superseded` says why (``ddp suite --dry-run`` prints it) and :func:`set_aside_if_superseded`
+optimiser), or changed its step budget (``train.max_steps``, or ``train.epochs`` without one: resumed at
+another budget, the cosine schedule would stretch or shrink mid-run, the LR jumping, which is not the run a
+fresh recipe trains, though ``ddp train`` allows it), the run has to train again from scratch. :func:`superseded` says why (``ddp suite --dry-run`` prints it) and :func:`set_aside_if_superseded`
 renames the folder to ``<name>.superseded-<UTC time>`` beside it, under the folder's run lock, so that
 nothing is deleted and no folder is moved while a trainer writes in it. A checkpoint that only evaluates
-differently (``eval``, ``controller``) or trains on to a higher step budget still resumes.
+differently (``eval``, ``controller``), or an interrupted run with the same budget, still resumes.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ def superseded(run_dir: str | Path, recipe: dict, source: str | None = None) -> 
     """Why ``run_dir/last.pt`` cannot continue ``recipe`` (``key: old -> new, ...``), or None: no
     checkpoint, one that resumes, or one that training reports on itself (unreadable, no stored recipe,
     or a recipe that does not validate)."""
-    from ddp.checkpoint import load_checkpoint
+    from ddp.checkpoint import load_checkpoint, stored_recipe
     from ddp.schema import validate
     from ddp.train import LAST, describe_changes, resume_conflicts
 
@@ -35,13 +36,15 @@ def superseded(run_dir: str | Path, recipe: dict, source: str | None = None) -> 
         state = load_checkpoint(path, mmap=True)
         resolved = validate(recipe, source)[2]
         changes = resume_conflicts(path, state, resolved)
-    except (DDPError, OSError):
+        trained = stored_recipe(path, state).get("train", {})
+    except (DDPError, OSError, AttributeError):
         return None
     if changes:
         return describe_changes(changes)
-    budget, step = resolved.get("train", {}).get("max_steps"), state.get("step")
-    if isinstance(budget, int) and isinstance(step, int) and step > budget:
-        return f"train.max_steps: {budget}, below the checkpoint's step {step}"
+    now = resolved.get("train", {})
+    for key in ("max_steps",) if now.get("max_steps") or trained.get("max_steps") else ("max_steps", "epochs"):
+        if trained.get(key) != now.get(key):
+            return f"train.{key}: {trained.get(key)} -> {now.get(key)} (another step budget)"
     return None
 
 
