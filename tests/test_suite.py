@@ -75,6 +75,7 @@ def test_task_protocols_keep_those_a_task_supports(suite_file):
     ({"protocols": ["id", "odd"]}, "unknown protocol 'odd'"),
     ({"set": ["train.lrr=1"]}, "train.lrr"),
     ({"methods": {"x": {"overlay": "missing.yaml"}}}, "overlay file not found"),
+    ({"output_dir": "/scratch"}, "unknown key 'output_dir'; did you mean 'results_dir'"),  # run folders are fixed
 ])
 def test_bad_suite_files_are_one_line(suite_file, edit, message):
     data = yaml.safe_load(suite_file.read_text())

@@ -41,7 +41,7 @@ __all__ = ["RunSpec", "SuiteSpec", "load_suite"]
 EXECUTION_ONLY = {"eval": ("num_envs", "parallel", "device", "video", "video_episodes", "video_size", "video_fps",
                            "video_camera")}
 
-KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "output_dir", "results_dir", "reference"}
+KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "results_dir", "reference"}
 
 
 @dataclass(frozen=True)
