@@ -38,7 +38,10 @@ def test_checkout_counts_the_package_source_only(repo):
     assert provenance.checkout(repo)["source"] != edited["source"]
     (repo / "ddp" / "a.py").write_text("x = 1\n")
     (repo / "ddp" / "new.py").write_text("y = 1\n")  # a new, untracked module is part of what runs
-    assert provenance.checkout(repo)["dirty"] is True
+    untracked = provenance.checkout(repo)
+    assert untracked["dirty"] is True
+    (repo / "ddp" / "new.py").write_text("y = 2\n")  # and so is its content
+    assert provenance.checkout(repo)["source"] != untracked["source"]
     assert provenance.checkout(repo / "ddp") == {}  # not a checkout's root: nothing to say
 
 

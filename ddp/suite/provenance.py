@@ -45,7 +45,13 @@ def checkout(root: Path, package: str = "ddp") -> dict:
         return {}
     out = {"commit": commit.stdout.strip()}
     if diff.returncode == 0 and untracked.returncode == 0 and tree.returncode == 0:
-        source = "\0".join((tree.stdout.strip(), diff.stdout, untracked.stdout))
+        contents = hashlib.sha256()
+        for name in untracked.stdout.splitlines():  # untracked modules run too: their content counts
+            try:
+                contents.update(name.encode() + b"\0" + (root / name).read_bytes())
+            except OSError:
+                contents.update(name.encode() + b"\0unreadable")
+        source = "\0".join((tree.stdout.strip(), diff.stdout, untracked.stdout, contents.hexdigest()))
         out["dirty"] = bool(diff.stdout.strip() or untracked.stdout.strip())
         out["source"] = hashlib.sha256(source.encode()).hexdigest()[:16]
     return out
