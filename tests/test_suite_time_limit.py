@@ -184,6 +184,26 @@ def test_ray_tells_a_stopped_run_by_what_its_log_gained_in_this_attempt(tmp_path
     assert _started_since(run, offset) and _started_since(run, 0)
 
 
+def test_a_run_whose_worker_died_at_the_limit_is_not_said_to_have_saved(tmp_path):
+    """After the time limit's SIGTERM, a run that raised KeyboardInterrupt saved its checkpoint (stopped); one
+    whose worker died under it (the pool broken: killed after the grace period) may not have (killed)."""
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    from ddp.suite.runner import _collect, _Limit
+
+    limit = _Limit(10.0, tmp_path, say=lambda *_: None)
+    runs = [_run_stub(tmp_path), _run_stub(tmp_path)]
+    for run, err in zip(runs, (KeyboardInterrupt(), BrokenProcessPool("a worker died"))):
+        fut = Future()
+        fut.set_exception(err)
+        _collect(fut, run, finished=None, failure=None, limit=limit, stopping=True)
+    assert limit.stopped == [runs[0].run_id] and limit.killed == [runs[1].run_id]
+    text = str(SuiteTimeLimit(10.0, limit.stopped, {}, {}, killed=limit.killed))
+    assert "stopped 1 run(s) in progress (t__m__seed0; a training run saved its checkpoint)" in text
+    assert "killed 1 run(s) that did not stop in time (t__m__seed0; each resumes from its last periodic" in text
+
+
 def _run_stub(tmp_path):
     from ddp.suite.spec import RunSpec
 

@@ -199,15 +199,21 @@ def fmt_minutes(seconds: float | None) -> str:
 
 
 class SuiteTimeLimit(DDPError):
-    """The time limit came: ``stopped`` runs were stopped (a training run saved its checkpoint), ``skipped``
-    ones did not start (run id -> expected seconds, None: unknown); ``done`` holds every stored result."""
+    """The time limit came: ``stopped`` runs were stopped (a training run saved its checkpoint), ``killed``
+    ones did not stop within the grace period (their last periodic checkpoint stands), ``skipped`` ones did
+    not start (run id -> expected seconds, None: unknown); ``done`` holds every stored result."""
 
-    def __init__(self, limit: float, stopped: list[str], skipped: dict[str, float | None], done: dict[str, dict]):
+    def __init__(self, limit: float, stopped: list[str], skipped: dict[str, float | None], done: dict[str, dict],
+                 killed: list[str] | None = None):
         self.limit, self.stopped, self.skipped, self.done = limit, stopped, skipped, done
+        self.killed = list(killed or [])
         parts = []
         if stopped:
             parts.append(f"stopped {len(stopped)} run(s) in progress ({', '.join(stopped)}; a training run saved "
                          "its checkpoint)")
+        if self.killed:
+            parts.append(f"killed {len(self.killed)} run(s) that did not stop in time ({', '.join(self.killed)}; "
+                         "each resumes from its last periodic checkpoint)")
         if skipped:
             parts.append(f"left {len(skipped)} not started (expected " + ", ".join(
                 f"{k}: {fmt_minutes(v)}" for k, v in skipped.items()) + ")")

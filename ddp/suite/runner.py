@@ -285,7 +285,8 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
             _run_on_pool(todo, finished, failure, workers=workers, threads=threads, echo=echo, limit=limit)
     finally:
         bar.close()
-    undone = SuiteTimeLimit(time_limit, limit.stopped, limit.skipped, done) if limit.stopped or limit.skipped else None
+    undone = (SuiteTimeLimit(time_limit, limit.stopped, limit.skipped, done, killed=limit.killed)
+              if limit.stopped or limit.skipped or limit.killed else None)
     if failed:  # a failed run decides the exit status; the time limit's account goes with it
         raise SuiteRunsFailed(failed, done, also=str(undone) if undone else "")
     if undone is not None:
@@ -295,7 +296,8 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
 
 class _Limit:
     """What the executors need of a time limit: the deadline (None: no limit) and each run's expected seconds;
-    it keeps the runs stopped at the limit and those not started (run id -> expected seconds), and ``say``s
+    it keeps the runs stopped at the limit (each saved its checkpoint), those killed after the grace period
+    (their last periodic checkpoint stands) and those not started (run id -> expected seconds), and ``say``s
     why a run did not start."""
 
     def __init__(self, seconds: float | None, results_dir, say):
@@ -304,6 +306,7 @@ class _Limit:
         self.results_dir, self.say = str(results_dir), say
         self.expected: dict[str, float | None] = {}
         self.stopped: list[str] = []
+        self.killed: list[str] = []
         self.skipped: dict[str, float | None] = {}
 
     def estimate(self, runs: list[RunSpec]) -> None:
@@ -443,7 +446,7 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
                     if fut.cancelled():  # still queued
                         limit.not_started(run)
                     elif not fut.done():  # its worker did not end within the grace period and was killed
-                        limit.stopped.append(run.run_id)
+                        limit.killed.append(run.run_id)
                     else:
                         _collect(fut, run, finished, failure, limit, stopping=True)
     except BaseException:  # Ctrl-C, SIGTERM, or an error storing a result: no queued run starts after it
@@ -458,14 +461,18 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
 
 def _collect(fut, run: RunSpec, finished, failure, limit: _Limit, stopping: bool = False) -> None:
     """One pool future's outcome: stored, failed or not started; with ``stopping`` (after the time limit's
-    SIGTERM) an interrupted or killed run counts as stopped."""
+    SIGTERM) an interrupted run counts as stopped, one whose worker died (killed after the grace period, or
+    the pool broken under it: whether it saved is unknown) as killed."""
     from concurrent.futures.process import BrokenProcessPool
 
     try:
         result = fut.result()
     except BaseException as err:
-        if stopping and isinstance(err, (KeyboardInterrupt, BrokenProcessPool)):
+        if stopping and isinstance(err, KeyboardInterrupt):
             limit.stopped.append(run.run_id)
+            return
+        if stopping and isinstance(err, BrokenProcessPool):
+            limit.killed.append(run.run_id)
             return
         if not isinstance(err, Exception):  # Ctrl-C / a SIGTERM from outside: the suite stops
             raise
@@ -583,8 +590,9 @@ def _cancel_ray(ray_mod, pending: dict, finished, failure, limit: _Limit, logged
             if not isinstance(err, halted) and not isinstance(cause, KeyboardInterrupt):
                 failure(run, cause or err)  # it had failed on its own
                 continue
-            if _started_since(run, logged.get(run.run_id, 0)):  # cancelled, interrupted or not back in time
-                limit.stopped.append(run.run_id)
+            if _started_since(run, logged.get(run.run_id, 0)):  # cancelled and interrupted, or not back in time
+                (limit.killed if isinstance(err, ray_mod.exceptions.GetTimeoutError) else limit.stopped).append(
+                    run.run_id)
             else:
                 limit.not_started(run)
             continue
