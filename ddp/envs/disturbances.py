@@ -19,8 +19,16 @@ observation that shows it is the one returned by that step.
 The camera occlusion follows the real-robot experiment ("we block the camera
 mid-task"): observations returned by the steps of chunks ``k .. k+L-1``
 (i.e. after ``t`` actions with ``k*c < t <= (k+L)*c``) are replaced by a
-degenerate cloud. So exactly ``L`` planning observations (those at the ends
-of those chunks, and every step in between) are blind.
+degenerate cloud. So for a policy whose chunks are ``chunk_len`` actions long,
+exactly ``L`` planning observations (those at the ends of those chunks, and
+every step in between) are blind.
+
+The clock is the env's, not the policy's: ``chunk_len`` (8, the DDP recipes'
+``action_steps``) is an env option that evaluation does not tie to the
+policy. A policy with shorter chunks (the FlowPolicy overlay's 3) meets the
+same move at the same env step, in the middle of one of its chunks, and a
+blind span of ``L * chunk_len`` steps covers more of its observations: every
+method is compared under one disturbance schedule in simulated time.
 
 These dataclasses are simulator-agnostic; ``PAPER_METAWORLD_DISPLACEMENTS``
 is the paper's table verbatim (the MetaWorld binding lives in
