@@ -204,6 +204,60 @@ def test_a_run_whose_worker_died_at_the_limit_is_not_said_to_have_saved(tmp_path
     assert "killed 1 run(s) that did not stop in time (t__m__seed0; each resumes from its last periodic" in text
 
 
+def test_a_stopping_pool_stores_the_runs_that_finished_before_it_could_collect_them(tmp_path):
+    from concurrent.futures import Future
+
+    from ddp.suite.runner import NotStarted, _store_finished
+
+    runs = [_run_stub(tmp_path) for _ in range(5)]
+    outcomes = [{"run_id": "a"}, KeyboardInterrupt(), NotStarted(60.0), None, {"run_id": "e"}]
+    futures, seen = {}, set()
+    for run, outcome in zip(runs, outcomes):
+        fut = Future()
+        if isinstance(outcome, BaseException):
+            fut.set_exception(outcome)
+        elif outcome is not None:  # None: still running when the pool was shut down
+            fut.set_result(outcome)
+        futures[fut] = run
+    done_first = list(futures)[4]
+    seen.add(done_first)  # collected in the loop already
+    stored = []
+    _store_finished(futures, seen, lambda run, result: stored.append(result["run_id"]))
+    assert stored == ["a"] and list(futures)[0] in seen
+
+
+def test_an_interrupted_ray_suite_cancels_its_tasks_so_they_save(tmp_path, monkeypatch):
+    """Ctrl-C or SIGTERM while the driver waits: every task is cancelled (a running one saves its checkpoint)
+    and given the grace period before the interruption goes on and Ray shuts down."""
+    import sys
+    import types
+
+    from ddp.suite import runner
+
+    calls = []
+
+    class Cancelled(Exception):
+        pass
+
+    fake = types.SimpleNamespace(
+        is_initialized=lambda: True, remote=lambda **kw: (lambda fn: types.SimpleNamespace(
+            remote=lambda *a: object())),
+        wait=lambda refs, num_returns=1, timeout=None: calls.append(("wait", timeout)) or (
+            (_ for _ in ()).throw(KeyboardInterrupt()) if len(calls) == 1 else (refs, [])),
+        cancel=lambda ref: calls.append("cancel"),
+        get=lambda ref, timeout=None: (_ for _ in ()).throw(Cancelled()),
+        exceptions=types.SimpleNamespace(TaskCancelledError=Cancelled, GetTimeoutError=TimeoutError))
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.chdir(tmp_path)
+    limit = runner._Limit(None, tmp_path, say=lambda *_: None)
+    runs = [_run_stub(tmp_path)]
+    with pytest.raises(KeyboardInterrupt):
+        runner._run_on_ray(runs, finished=None, failure=None, ray=True, threads=1, gpus=0, echo=lambda *_: None,
+                           limit=limit)
+    assert calls == [("wait", None), "cancel", ("wait", runner.STOP_GRACE_SECONDS)]
+    assert limit.skipped == {runs[0].run_id: None}  # its log shows no start in this attempt
+
+
 def _run_stub(tmp_path):
     from ddp.suite.spec import RunSpec
 

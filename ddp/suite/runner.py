@@ -109,6 +109,18 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
             exp.load_checkpoint(trained.checkpoint)
             report = exp.evaluate(list(run.protocols) if run.protocols else None, episodes=run.episodes,
                                   progress=False)
+            result = {
+                "run_id": run.run_id, "suite": run.suite, "task": run.task, "method": run.method, "seed": run.seed,
+                "benchmark": run.benchmark,
+                # seconds: all training behind the checkpoint; attempt_seconds: this call's (the rest of
+                # wall_seconds is setup and evaluation, what a time limit's estimate needs)
+                "train": {"steps": trained.steps, "seconds": trained.total_seconds,
+                          "attempt_seconds": trained.seconds, "loss": trained.loss},
+                "episodes": report["episodes"],
+                "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
+                "wall_seconds": time.perf_counter() - t0,
+                "code": code_version(),
+            }
         except BaseException as err:  # the traceback stays with the run (the suite prints one line)
             if isinstance(err, KeyboardInterrupt):
                 print(f"== {run.run_id} stopped ({err or 'interrupted'}; a training run saved its checkpoint)", flush=True)
@@ -117,18 +129,7 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
                 print(f"== {run.run_id} failed", flush=True)
             raise
         print(f"== {run.run_id} finished", flush=True)
-    return {
-        "run_id": run.run_id, "suite": run.suite, "task": run.task, "method": run.method, "seed": run.seed,
-        "benchmark": run.benchmark,
-        # seconds: all training behind the checkpoint; attempt_seconds: this call's (the rest of wall_seconds is
-        # setup and evaluation, what a time limit's estimate needs)
-        "train": {"steps": trained.steps, "seconds": trained.total_seconds, "attempt_seconds": trained.seconds,
-                  "loss": trained.loss},
-        "episodes": report["episodes"],
-        "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
-        "wall_seconds": time.perf_counter() - t0,
-        "code": code_version(),
-    }
+    return result
 
 
 def _reevaluate_run(run: RunSpec, run_dir: Path, t0: float) -> dict:
@@ -451,12 +452,28 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
                         _collect(fut, run, finished, failure, limit, stopping=True)
     except BaseException:  # Ctrl-C, SIGTERM, or an error storing a result: no queued run starts after it
         _stop_pool(pool, stop, futures)
+        with signals_deferred():  # runs that finished before the stop (or during its grace period) are stored
+            _store_finished(futures, seen, finished)
         raise
     else:
         pool.shutdown(wait=True)
     finally:
         if policy is None:
             os.environ.pop("OMP_WAIT_POLICY", None)
+
+
+def _store_finished(futures: dict, seen: set, finished) -> None:
+    """Store every future not collected yet that holds a finished run's result (the suite is stopping: the
+    others are failed, stopped or never ran, and the next invocation runs them; one that cannot be stored is
+    left to it too)."""
+    for fut, run in futures.items():
+        if fut in seen or not fut.done() or fut.cancelled() or fut.exception() is not None:
+            continue
+        result = fut.result()
+        if isinstance(result, dict):  # not a NotStarted
+            with contextlib.suppress(Exception):
+                finished(run, result)
+                seen.add(fut)
 
 
 def _collect(fut, run: RunSpec, finished, failure, limit: _Limit, stopping: bool = False) -> None:
@@ -512,8 +529,10 @@ def _stop_pool(pool, stop, futures: dict) -> None:
 
 
 def _run_on_ray(todo: list[RunSpec], finished, failure, *, ray, threads: int, gpus: float, echo, limit: _Limit) -> None:
-    """Submit every run as a Ray task; store results in the order they finish. At the time limit every task
-    left is cancelled: a running one gets KeyboardInterrupt (a training run saves its checkpoint)."""
+    """Submit every run as a Ray task; store results in the order they finish. At the time limit, or when the
+    suite is interrupted (Ctrl-C, SIGTERM, SIGHUP), every task left is cancelled: a running one gets
+    KeyboardInterrupt (a training run saves its checkpoint) and the grace period to end, then the
+    interruption goes on."""
     try:
         import ray as ray_mod
     except ImportError:
@@ -533,14 +552,20 @@ def _run_on_ray(todo: list[RunSpec], finished, failure, *, ray, threads: int, gp
             logged[run.run_id] = _log_size(run)  # what its log held before this attempt
             pending[task.remote(run, threads, limit.end, limit.expected.get(run.run_id), os.getcwd(), None,
                                 limit.seconds)] = run
-        while pending:
-            left = None if limit.deadline is None else max(limit.deadline.left(), 0.0)
-            ready, _ = ray_mod.wait(list(pending), num_returns=1, timeout=left)
-            if not ready:  # the time limit
-                _cancel_ray(ray_mod, pending, finished, failure, limit, logged)
-                return
-            for ref in ready:
-                _collect_ray(ray_mod, ref, pending.pop(ref), finished, failure, limit)
+        with stop_signals():  # SIGTERM / SIGHUP raise Preempted here, like Ctrl-C's KeyboardInterrupt
+            try:
+                while pending:
+                    left = None if limit.deadline is None else max(limit.deadline.left(), 0.0)
+                    ready, _ = ray_mod.wait(list(pending), num_returns=1, timeout=left)
+                    if not ready:  # the time limit
+                        _cancel_ray(ray_mod, pending, finished, failure, limit, logged)
+                        return
+                    for ref in ready:
+                        _collect_ray(ray_mod, ref, pending.pop(ref), finished, failure, limit)
+            except KeyboardInterrupt:  # Preempted too: the runs in progress save before Ray shuts down
+                with signals_deferred():
+                    _cancel_ray(ray_mod, pending, finished, failure, limit, logged)
+                raise
     finally:
         if started_here:
             ray_mod.shutdown()
