@@ -164,6 +164,9 @@ SCORE_VARIANTS: dict[str, dict] = {
     # raise the scale of the chunk before it; coffee-pull: 9/20 on time where the default flags 0)
     "point_newest_per_chunk_w0_q90": {"dims": "point", "frames": "newest", "per_chunk": True, "window": 0,
                                       "chunk_quantile": 0.9},
+    # the same, each phase's scale fitted on the successful fitting episodes only (fit_on: successful)
+    "point_newest_per_chunk_w0_q90_fit_ok": {"dims": "point", "frames": "newest", "per_chunk": True, "window": 0,
+                                             "chunk_quantile": 0.9, "fit_on": "successful"},
     "whitened": {"whiten": True},
     "per_chunk": {"per_chunk": True},
     "whitened_per_chunk": {"whiten": True, "per_chunk": True},
@@ -242,7 +245,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
     def calibrate(options: dict):
         cfg = DiscrepancyConfig(alpha=alpha, **{**options, **({"threshold_on": threshold_on} if threshold_on else {})})
         return cfg.spec, fit_calibration(cal_eps, cfg.spec, alpha=alpha, point_dims=pd, fit_fraction=cfg.fit_fraction,
-                                         threshold_on=cfg.threshold_on)
+                                         threshold_on=cfg.threshold_on, fit_on=cfg.fit_on)
 
     def calibrate_all() -> dict:  # label -> (spec, calibration), or the ValueError it raised
         out = {}
@@ -269,7 +272,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
             continue
         spec, cal = fits[label]
         row = {"score": label, "options": options, "description": spec.label(), "tau": cal.tau,
-               "threshold_on": cal.threshold_on,
+               "threshold_on": cal.threshold_on, "fit_on": cal.fit_on,
                "fit_episodes": cal.fit_episodes, "threshold_episodes": cal.threshold_episodes}
         stats = {name: _statistics(eps, spec, cal, pd) for name, eps in test.items()}
         traces[label] = {"tau": cal.tau, "reference": cal.reference, **stats}

@@ -115,6 +115,32 @@ def test_tau_is_set_on_successful_held_out_episodes_and_more_are_asked_for():
         DiscrepancyConfig(threshold_on="succesful")
 
 
+def test_fit_on_successful_fits_the_phase_scale_on_nominal_episodes_only():
+    """fit_on: successful: a failing fitting episode's wandering residual does not raise its phase's scale (the
+    default fits on every fitting episode)."""
+    from ddp.detectors.scores import split_fit
+
+    rng = np.random.default_rng(1)
+    n = 40
+    scores = rng.gamma(2.0, 0.5, size=(n, 6))
+    failing = np.arange(n) % 4 == 1  # fitting episodes (odd indices) among them
+    scores[failing, 3:] *= 50
+    eps = episodes_from_scores(scores, success=~failing)
+    spec = ScoreSpec(per_chunk=True, window=0, chunk_quantile=0.9)
+    every = fit_calibration(eps, spec, alpha=0.1, threshold_on="successful")
+    nominal = fit_calibration(eps, spec, alpha=0.1, threshold_on="successful", fit_on="successful")
+    fits = np.array(split_fit(n, 0.5))
+    assert nominal.fit_episodes == int((fits & ~failing).sum()) == 10 and every.fit_episodes == 20
+    ok = scores[fits & ~failing]
+    assert nominal.chunk_scale == pytest.approx([np.quantile(ok[:, c], 0.9) for c in range(6)])
+    assert all(a > 10 * b for a, b in zip(every.chunk_scale[3:], nominal.chunk_scale[3:]))
+    assert nominal.fit_on == "successful" and every.fit_on == "all"
+    with pytest.raises(ValueError, match="none of the 20 fitting ID calibration episodes succeeded"):
+        fit_calibration(episodes_from_scores(scores, success=[False] * n), spec, alpha=0.1, fit_on="successful")
+    with pytest.raises(ValueError, match="fit_on must be one of"):
+        DiscrepancyConfig(fit_on="ok")
+
+
 def test_eval_rolls_out_more_calibration_episodes_until_enough_succeeded(tiny_recipe, monkeypatch):
     """ddp eval's calibration asks the detector; while it wants more, more ID episodes are rolled out on
     fresh seeds (up to eval.max_calibration_episodes, then one line says so)."""

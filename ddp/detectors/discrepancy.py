@@ -52,6 +52,9 @@ class DiscrepancyConfig:
     # nominal episodes; a failing ID episode's wandering residual no longer sets tau; more episodes are
     # rolled out while fewer than (1 - alpha) / alpha succeeded), or all of them
     threshold_on: Literal["successful", "all"] = "successful"
+    # the fitting ID episodes the statistic's reference (per-phase scale, median, whitening) comes from: all,
+    # or the successful ones (a failing episode's wandering residual then does not raise a phase's scale)
+    fit_on: Literal["all", "successful"] = "all"
 
     def __post_init__(self):
         check_choices(self)
@@ -103,7 +106,8 @@ class DiscrepancyDetector(KeyedModule):
         """Fit the statistic and tau on ID episodes (``latent_real`` / ``latent_pred`` per chunk); return tau."""
         cfg = self.config
         self.cal = fit_calibration(list(episodes), self.spec, alpha=cfg.alpha, point_dims=point_dims,
-                                   fit_fraction=cfg.fit_fraction, tau=cfg.tau, threshold_on=cfg.threshold_on)
+                                   fit_fraction=cfg.fit_fraction, tau=cfg.tau, threshold_on=cfg.threshold_on,
+                                   fit_on=cfg.fit_on)
         return self.cal.tau
 
     def calibration(self) -> dict:

@@ -191,6 +191,7 @@ class ScoreCalibration:
     fit_episodes: int = 0
     threshold_episodes: int = 0
     threshold_on: str = "all"  # the held-out episodes that set tau: all, or the successful ones
+    fit_on: str = "all"  # the fitting episodes the reference came from: all, or the successful ones
     reference: list[list[float]] | None = None
 
     def scale_at(self, chunk: int) -> float:
@@ -258,17 +259,20 @@ def _needed(alpha: float) -> int:
 
 def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | None, point_dims: int = 0,
                     fit_fraction: float = 0.5, tau: float | None = None,
-                    threshold_on: str = "all") -> ScoreCalibration:
+                    threshold_on: str = "all", fit_on: str = "all") -> ScoreCalibration:
     """Fit ``spec``'s reference statistics on a ``fit_fraction`` of the ID ``episodes`` (each with
     ``latent_real`` / ``latent_pred`` arrays ``[chunks, M, D]``, NaN forecasts where none; see
     :func:`split_fit`) and, unless ``tau`` is given, the conformal threshold for ``alpha`` on the rest,
     or (``threshold_on="successful"``) on the rest that succeeded: the threshold then bounds false
     alarms over nominal ID episodes, and failing ones (heavy-tailed residuals) do not set it. Too few
-    successful held-out episodes raise :class:`ddp.contracts.NeedMoreEpisodes`."""
+    successful held-out episodes raise :class:`ddp.contracts.NeedMoreEpisodes`. ``fit_on="successful"`` fits
+    the reference on the fitting episodes that succeeded only."""
     from ddp.contracts import NeedMoreEpisodes
 
     if threshold_on not in THRESHOLD_ON:
         raise ValueError(f"threshold_on must be one of {', '.join(THRESHOLD_ON)}; got {threshold_on!r}")
+    if fit_on not in THRESHOLD_ON:
+        raise ValueError(f"fit_on must be one of {', '.join(THRESHOLD_ON)}; got {fit_on!r}")
     n = len(episodes)
     if n < 2 and spec.needs_reference and tau is None:
         raise ValueError(f"calibrating this score needs at least 2 ID episodes; got {n}")
@@ -278,6 +282,13 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
             fits[-1] = True
         fit = [e for e, f in zip(episodes, fits) if f]
         held = [e for e, f in zip(episodes, fits) if not f]
+        if fit_on == "successful":
+            if any("success" not in e for e in fit):
+                raise ValueError("fit_on: successful needs calibration episodes that record their success")
+            if not any(e["success"] for e in fit):
+                raise ValueError(f"none of the {len(fit)} fitting ID calibration episodes succeeded (fit_on: "
+                                 "successful); set controller.detector.fit_on: all")
+            fit = [e for e in fit if e["success"]]
         n_fit = len(fit)
     else:
         fit, held, n_fit = list(episodes), list(episodes), 0
@@ -301,7 +312,7 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
                 more=math.ceil((need - len(ok)) / (share * rate)))
         held = ok
     cal = ScoreCalibration(alpha=alpha, fit_episodes=n_fit, threshold_episodes=len(held) if tau is None else 0,
-                           threshold_on=threshold_on)
+                           threshold_on=threshold_on, fit_on=fit_on)
     if spec.whiten:
         res = np.concatenate([
             (np.asarray(e["latent_real"], np.float64) - np.asarray(e["latent_pred"], np.float64)).reshape(-1, np.shape(
