@@ -49,7 +49,7 @@ def train_step(recipe: str, overrides: list[str], *, dp3: bool, batch_size: int,
     torch.manual_seed(0)
     model, r = exp.model.train(), exp.recipe
     M, N, P, D = r.policy.obs_steps, r.policy.action_steps, r.task.num_points, r.task.agent_pos_dim
-    T = max(r.policy.horizon, M + N)
+    T = model.window
     g = torch.Generator().manual_seed(0)
     pc = 0.3 * torch.randn(batch_size, T, P, r.task.point_dim, generator=g)
     pos = torch.rand(batch_size, T, D, generator=g)

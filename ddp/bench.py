@@ -86,7 +86,7 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     # training throughput on random windows of the recipe's shapes
     model.train()
     B = r.train.batch_size
-    T = max(r.policy.horizon, M + N)
+    T = model.window
     batch = TensorDict({
         "point_cloud": torch.rand(B, T, P, r.task.point_dim, device=dev),
         "agent_pos": torch.rand(B, T, D, device=dev),

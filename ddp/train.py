@@ -199,9 +199,8 @@ class Trainer:
         exp, cfg, model = self.exp, self.cfg, self.exp.model
         pol = exp.recipe.policy
         episodes = exp.episodes()
-        length = max(pol.horizon, pol.obs_steps + pol.action_steps)
         dataset = SequenceDataset(
-            episodes, length, pad_before=pol.obs_steps - 1, pad_after=pol.action_steps - 1,
+            episodes, model.window, pad_before=pol.obs_steps - 1, pad_after=pol.action_steps - 1,
             keys=["point_cloud", "agent_pos", "action"],
         )
         ckpt_path = self.output_dir / LAST

@@ -81,6 +81,26 @@ def test_lambda_zero_and_no_world_model_equal_dp3(tiny_recipe):
     torch.testing.assert_close(g0, g1, rtol=1e-5, atol=1e-7)  # encoder batch differs (M vs M+N frames)
 
 
+def test_a_model_without_world_model_trains_on_windows_of_its_horizon(tiny_recipe, tmp_path):
+    """FlowPolicy's shapes (horizon 4 = M + N - 1): windows of H frames, as DP3's and FlowPolicy's own code
+    cut them (one more window per episode end than M + N frames would give); with a world model, M + N."""
+    from ddp.data.sequence import SequenceDataset
+
+    tiny_recipe["policy"].update(horizon=4, obs_steps=2, action_steps=3)
+    with_wm = build(tiny_recipe)
+    assert with_wm.model.window == 5
+    tiny_recipe["world_model"]["enabled"] = False
+    tiny_recipe["train"].update(max_steps=1, output_dir=str(tmp_path), logger="none")
+    e = build(tiny_recipe)
+    assert e.model.window == 4
+    fit_normalizer(e)
+    ds = SequenceDataset(e.episodes(), e.model.window, pad_before=1, pad_after=2,
+                         keys=["point_cloud", "agent_pos", "action"])
+    out = e.model.loss(ds.batch(torch.arange(4)), generator=torch.Generator().manual_seed(0))
+    assert torch.isfinite(out["loss"])
+    assert e.train(progress=False).steps == 1
+
+
 @pytest.mark.parametrize("batch_shape", [(2,), (2, 3)])
 def test_inference_shapes_over_batch_dims(exp, batch_shape):
     m = exp.model.eval()

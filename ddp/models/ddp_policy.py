@@ -87,6 +87,12 @@ class DreamDiffusionPolicy(KeyedModule):
     def has_world_model(self) -> bool:
         return self.world_model_net is not None
 
+    @property
+    def window(self) -> int:
+        """Frames per training sample: the policy's horizon and, with a world model, the M + N frames its
+        history and future targets span (without one, DP3's and FlowPolicy's windows: the horizon)."""
+        return max(self.horizon, self.obs_steps + self.action_steps) if self.has_world_model else self.horizon
+
     # ------------------------------------------------------------------ encoding
     @property
     def point_dims(self) -> int:
