@@ -54,6 +54,56 @@ def test_limit_target_clips_to_box_and_step():
     assert limited and np.linalg.norm(wrist) == pytest.approx(0.72) and pos[0] < 0.7
     near = np.array([0.55, -0.1, 0.02])  # a block on the table is within reach
     assert not limit_target(near, DOWN_WXYZ, near, DOWN_WXYZ, [0, -1, 0], [1, 1, 1], 1.0, 1.0, max_reach=0.72)[2]
+    # the box wins: a pull-back toward the shoulder, or a step from a measured pose outside the box, is clipped
+    pos, _, _ = limit_target(far, DOWN_WXYZ, far, DOWN_WXYZ, [0.69, -1, 0], [1, 1, 1], 1.0, 1.0, max_reach=0.72)
+    assert pos[0] == pytest.approx(0.69)  # pulled back to x 0.652 without the box
+    outside = np.array([0.1, 0.0, 0.3])
+    pos, _, limited = limit_target(outside, DOWN_WXYZ, [0.6, 0.0, 0.3], DOWN_WXYZ, [0.2, -0.4, 0.01], [0.7, 0.4, 0.5],
+                                   0.05, 0.3)
+    assert limited and pos[0] == pytest.approx(0.2)
+
+
+def test_control_never_sends_a_nonfinite_target():
+    """A measured pose that reads NaN (a sensor fault) never turns into a NaN target: refused before move_to."""
+    from ddp.envs.franka.control import FrankaControl
+    from ddp.safety import NonFiniteError
+
+    class Backend:
+        pose = (np.array([0.5, 0.0, 0.3]), np.array([0.0, 1.0, 0.0, 0.0]))
+        sent = []
+
+        def ee_pose(self):
+            return self.pose
+
+        def move_to(self, pos, quat):
+            self.sent.append(pos)
+
+        def set_gripper(self, close):
+            pass
+
+    backend = Backend()
+    control = FrankaControl(backend, workspace_low=[0.2, -0.4, 0.0], workspace_high=[0.7, 0.4, 0.5])
+    control.reset()
+    control.step(np.zeros(7))
+    assert len(backend.sent) == 1
+    backend.pose = (np.array([np.nan, 0.0, 0.3]), backend.pose[1])
+    control.step(np.zeros(7))  # the commanded target moves from the last one, not from the NaN reading
+    assert len(backend.sent) == 2 and np.isfinite(backend.sent[-1]).all()
+    with pytest.raises(NonFiniteError, match="non-finite shift target"):  # its approach steps start at the reading
+        control.shift([0.05, 0.0, 0.0])
+    assert len(backend.sent) == 2
+    with pytest.raises(ValueError, match="max_lead must be a finite number > 0; got nan"):
+        FrankaControl(backend, workspace_low=[0.2, -0.4, 0.0], workspace_high=[0.7, 0.4, 0.5], max_lead=float("nan"))
+
+
+@pytest.mark.parametrize("option", ["max_translation", "max_rotation", "max_lead", "kp", "control_period"])
+def test_a_nan_control_setting_is_refused(option):
+    from ddp.envs.franka.env import FrankaEnvConfig
+
+    with pytest.raises(ValueError, match=f"{option} must be a finite number > 0; got nan"):
+        FrankaEnvConfig(**{option: float("nan")})
+    with pytest.raises(ValueError, match="workspace_min and workspace_max must be finite"):
+        FrankaEnvConfig(workspace_min=(0.2, -0.45, float("nan")))
 
 
 def test_calibration_loader(tmp_path):

@@ -164,10 +164,15 @@ class FrankaControl:
         self.backend = backend
         self.low = np.asarray(workspace_low, dtype=np.float64)
         self.high = np.asarray(workspace_high, dtype=np.float64)
-        if self.low.shape != (3,) or self.high.shape != (3,) or np.any(self.low >= self.high):
+        if (self.low.shape != (3,) or self.high.shape != (3,) or not np.isfinite([*self.low, *self.high]).all()
+                or np.any(self.low >= self.high)):
             raise ValueError(
                 f"workspace_low must be below workspace_high on x, y, z; got {workspace_low}, {workspace_high}"
             )
+        for name, value in (("max_translation", max_translation), ("max_rotation", max_rotation),
+                            ("max_lead", max_lead), ("max_rotation_lead", max_rotation_lead)):
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0; got {value}")
         self.max_translation = float(max_translation)
         self.max_rotation = float(max_rotation)
         self.max_lead = float(max_lead)
@@ -214,8 +219,11 @@ class FrankaControl:
         if close != self.gripper_closed:
             self.backend.set_gripper(close)
             self.gripper_closed = close
-        self.target_pos, self.target_rot = self._targets(a[:3], a[3:6])
-        self.backend.move_to(self.target_pos.copy(), mat_to_quat(self.target_rot))
+        target_pos, target_rot = self._targets(a[:3], a[3:6])
+        quat = mat_to_quat(target_rot)
+        require_finite("target", np.concatenate([target_pos, quat]), "franka control")  # defence in depth
+        self.target_pos, self.target_rot = target_pos, target_rot
+        self.backend.move_to(self.target_pos.copy(), quat)
         return a
 
     def shift(self, delta, *, safe_lift: float = 0.0, max_steps: int = 40, tolerance: float = 0.005) -> np.ndarray:
@@ -244,7 +252,8 @@ class FrankaControl:
                 if dist < tolerance:
                     break
                 # approach in bounded increments so that the arm (and what it holds) moves smoothly
-                command = pos + step * min(1.0, self.max_lead / max(dist, 1e-9))
+                command = np.clip(pos + step * min(1.0, self.max_lead / max(dist, 1e-9)), self.low, self.high)
+                require_finite("shift target", command, "franka control")
                 self.backend.move_to(command, quat)
         self.target_pos = goal
         self.backend.move_to(goal.copy(), quat)

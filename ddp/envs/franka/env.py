@@ -67,6 +67,7 @@ give the same trajectory and point clouds.
 
 from __future__ import annotations
 
+import math
 import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -194,6 +195,9 @@ class FrankaEnvConfig(ObservationOptions):
             value = getattr(self, name)
             if value is not None and len(value) != 3:
                 raise ValueError(f"{name} needs 3 entries (x, y, z); got {list(value)}")
+        if not all(math.isfinite(v) for v in (*self.workspace_min, *self.workspace_max)):
+            raise ValueError(f"workspace_min and workspace_max must be finite; got {list(self.workspace_min)} and "
+                             f"{list(self.workspace_max)}")
         if any(a >= b for a, b in zip(self.workspace_min, self.workspace_max)):
             raise ValueError(
                 f"workspace_min must be below workspace_max on every axis; got {list(self.workspace_min)} and "
@@ -201,11 +205,12 @@ class FrankaEnvConfig(ObservationOptions):
             )
         if self.camera_fovy is not None and not 0.0 < self.camera_fovy < 180.0:
             raise ValueError(f"camera_fovy must be in (0, 180) degrees; got {self.camera_fovy}")
-        if self.control_period <= 0:
-            raise ValueError(f"control_period must be > 0 seconds; got {self.control_period}")
+        if not (math.isfinite(self.control_period) and self.control_period > 0):  # NaN fails every comparison
+            raise ValueError(f"control_period must be a finite number > 0; got {self.control_period} (seconds)")
         for name in ("max_translation", "max_rotation", "max_lead", "kp"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be > 0; got {getattr(self, name)}")
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0; got {value}")
         rows = len(TASKS[self.task].displacements)
         for name in ("displacement_chunks", "displacement_deltas"):
             value = getattr(self, name)

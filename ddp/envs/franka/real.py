@@ -260,6 +260,7 @@ def limit_target(
     wrist_offset: float = WRIST_OFFSET,
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """The safe version of a target: inside the box and the arm's reach, at most one step from the measured pose.
+    The box wins: a target pulled back into reach, or a step, that would leave the box is clipped to it.
 
     ``max_reach``: largest distance of the wrist centre (``wrist_offset`` metres behind the TCP along
     the target's approach axis) from the shoulder at ``SHOULDER``; farther targets are pulled back
@@ -276,13 +277,13 @@ def limit_target(
         approach = _qrotate(q_tgt, np.array([0.0, 0.0, 1.0]))
         wrist = pos - wrist_offset * approach - SHOULDER
         reach = float(np.linalg.norm(wrist))
-        if reach > max_reach:
-            pos = pos - wrist * (1.0 - max_reach / reach)
+        if reach > max_reach:  # pulled toward the shoulder, which may leave the box: clipped again
+            pos = np.clip(pos - wrist * (1.0 - max_reach / reach), workspace_low, workspace_high)
     limited = not np.allclose(pos, tgt)
     step = pos - cur
     dist = float(np.linalg.norm(step))
-    if dist > max_translation:
-        pos = cur + step * (max_translation / dist)
+    if dist > max_translation:  # a step from a measured pose outside the box may end outside it: clipped
+        pos = np.clip(cur + step * (max_translation / dist), workspace_low, workspace_high)
         limited = True
     angle = quat_angle(q_cur, q_tgt)
     quat = q_tgt
