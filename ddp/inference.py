@@ -143,6 +143,9 @@ class DDPController(KeyedModule):
             raise ValueError(f"forecast_samples must be >= 1; got {forecast_samples}")
         if on_nonfinite not in ("raise", "hold"):
             raise ValueError(f"on_nonfinite must be 'raise' or 'hold'; got {on_nonfinite!r}")
+        if on_nonfinite == "hold" and hold is None:  # e.g. a Franka gripper held at 0 would read as "open"
+            raise ValueError("on_nonfinite='hold' needs hold=, how the env holds still (its action_hold, e.g. "
+                             "ddp.safety.DELTAS for an env whose every action dim is a delta)")
         bad = first_nonfinite([*model.named_parameters(), *model.named_buffers()])
         if bad is not None:
             raise NonFiniteError(f"the model's '{bad}' holds NaN or inf: it cannot drive a robot")
@@ -166,7 +169,7 @@ class DDPController(KeyedModule):
         self._job: tuple[list[int], Future] | None = None  # the forecast being made while the chunk executes
         self.seed = seed
         self.on_nonfinite = on_nonfinite
-        self.hold = DELTAS if hold is None else hold
+        self.hold = DELTAS if hold is None else hold  # used by "hold" only, which is given one
         self.obs_spec = ObservationSpec(model.obs_steps, model.agent_pos_dim, model.point_dim, num_points)
         self.reset()
 

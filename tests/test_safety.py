@@ -137,6 +137,16 @@ def test_hold_repeats_absolute_dims_and_uses_reset_values():
     assert HoldSpec(absolute="all").action(torch.ones(3), 3, 1).tolist() == [[1.0, 1.0, 1.0]]
 
 
+def test_a_controller_built_in_code_holds_only_as_told(exp):
+    """No default hold: holding every dim at 0 would open a Franka gripper (its dim is absolute)."""
+    from ddp.inference import DDPController
+
+    det = exp.make_controller().detector
+    with pytest.raises(ValueError, match="on_nonfinite='hold' needs hold="):
+        DDPController(exp.model, detector=det, on_nonfinite="hold")
+    DDPController(exp.model, detector=det, on_nonfinite="hold", hold=HoldSpec(absolute=(3,), reset={3: -1.0}))
+
+
 def test_hold_needs_an_env_that_declares_it(tiny_recipe):
     from ddp.errors import RecipeError
 
