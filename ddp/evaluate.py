@@ -17,7 +17,7 @@ from pathlib import Path
 from ddp import results_json
 from ddp.contracts import Calibratable
 from ddp.detection import detection_metrics
-from ddp.errors import RecipeError
+from ddp.errors import DDPError, RecipeError
 from ddp.eval_report import markdown_table, protocol_result, write_report  # noqa: F401 (re-exported)
 from ddp.eval_runner import (  # noqa: F401 (re-exported: the runner's public names)
     ChunkedEnvFactory, calibrate_detector, calibration_env, calibration_episodes, env_factory, env_overrides, make_chunked_env,
@@ -164,6 +164,8 @@ def _calibration(exp, detector, section: dict, *, seed: int, runs: dict) -> dict
         return saved
     try:
         calibrate_detector(exp, detector, episodes=cfg.calibration_episodes, seed=seed, **runs)
+    except DDPError:  # already one line naming its own key or file (e.g. a camera calibration file)
+        raise
     except ValueError as err:  # e.g. too few ID episodes for alpha
         raise RecipeError(str(err), source=exp.source, key="controller.detector") from None
     calibration = detector.calibration()

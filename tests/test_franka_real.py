@@ -135,6 +135,17 @@ def test_calibration_loader(tmp_path):
     (tmp_path / "broken.yaml").write_text("cameras: [unclosed\n")
     with pytest.raises(CalibrationError, match="cannot be parsed"):
         load_calibration(tmp_path / "broken.yaml")
+    (tmp_path / "binary.yaml").write_bytes(b"\xff\xfe\x00cameras")
+    with pytest.raises(CalibrationError, match="cannot be parsed"):
+        load_calibration(tmp_path / "binary.yaml")
+    mm = pose.copy()
+    mm[:3, 3] = [1000.0, 0.0, 600.0]  # millimetres
+    (tmp_path / "mm.json").write_text(json.dumps({"policy": mm.tolist()}))
+    with pytest.raises(CalibrationError, match="1166 m from the robot base; metres are expected"):
+        load_calibration(tmp_path / "mm.json")
+    from ddp.errors import DDPError
+
+    assert issubclass(CalibrationError, DDPError)  # the CLI prints it as one line
 
 
 def test_config_validation_and_camera_errors():

@@ -37,6 +37,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from ddp.envs.franka.backend import CameraFrame
+from ddp.errors import DDPError
 
 __all__ = [
     "Calibration",
@@ -52,8 +53,13 @@ __all__ = [
 INSTALL_HINT = "pip install 'ddp[real]'"
 
 
-class CalibrationError(ValueError):
-    """A calibration file that cannot be used (one line, naming the file and the key)."""
+#: metres: a camera farther from the robot base than this is a calibration in other units (millimetres)
+MAX_CAMERA_DISTANCE = 5.0
+
+
+class CalibrationError(DDPError, ValueError):
+    """A calibration file that cannot be used (one line, naming the file and the key; the CLI prints it as
+    ``ddp: error: ...``)."""
 
 
 class CameraSource:
@@ -84,6 +90,9 @@ def _check_pose(matrix: Any, where: str) -> np.ndarray:
         raise CalibrationError(f"{where}: cam_to_base has non-finite entries")
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
         raise CalibrationError(f"{where}: cam_to_base's last row must be [0, 0, 0, 1]; got {m[3].tolist()}")
+    if np.linalg.norm(m[:3, 3]) > MAX_CAMERA_DISTANCE:  # millimetres would put every point outside the crop
+        raise CalibrationError(f"{where}: cam_to_base's translation {m[:3, 3].tolist()} is "
+                               f"{np.linalg.norm(m[:3, 3]):.4g} m from the robot base; metres are expected")
     rot = m[:3, :3]
     err = float(np.abs(rot.T @ rot - np.eye(3)).max())
     if err > 1e-3 or np.linalg.det(rot) < 0:
@@ -112,8 +121,8 @@ def load_calibration(path: str | Path) -> Calibration:
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"calibration file {str(path)!r} does not exist")
-    text = path.read_text()
     try:
+        text = path.read_text()
         if path.suffix.lower() == ".json":
             raw = json.loads(text)
         else:
