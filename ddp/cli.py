@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ddp.errors import DDPError
-from ddp.preemption import Preempted
+from ddp.preemption import Preempted, stop_signals
 
 
 def _add_recipe_args(p: argparse.ArgumentParser, optional: bool = False) -> None:
@@ -106,6 +106,11 @@ def _print_eval(report: dict, out_dir) -> None:
 
 
 def cmd_eval(args) -> int:
+    with stop_signals():  # SIGTERM / SIGHUP end it like Ctrl-C: the envs close (a real robot stops) in finally
+        return _eval(args)
+
+
+def _eval(args) -> int:
     from pathlib import Path
 
     from ddp.experiment import build, experiment_from_checkpoint
@@ -139,6 +144,11 @@ def _env_overrides(pairs: list[str]) -> dict:
 
 
 def cmd_detect(args) -> int:
+    with stop_signals():  # as ddp eval: SIGTERM / SIGHUP close the envs on the way out
+        return _detect(args)
+
+
+def _detect(args) -> int:
     from pathlib import Path
 
     from ddp import results_json
@@ -519,7 +529,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ddp: error: {err}", file=sys.stderr)
         return 2
     except Preempted as err:
-        print(f"ddp: {err} (a training run saved its checkpoint; the same command resumes it)", file=sys.stderr)
+        print(f"ddp: {err} (a training run saved its checkpoint, an evaluation closed its envs; the same command "
+              "resumes training)", file=sys.stderr)
         return 128 + err.signum
     except BrokenPipeError:  # `ddp list | head`: the reader left; no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

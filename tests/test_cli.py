@@ -61,3 +61,39 @@ def test_a_closed_pipe_ends_quietly():
     out = subprocess.run(f"{sys.executable} -m ddp list | head -1", shell=True, capture_output=True, text=True,
                          timeout=120)
     assert out.stdout.startswith("encoder:") and "Traceback" not in out.stderr, out.stderr
+
+
+def test_sigterm_ends_an_evaluation_through_its_clean_up(tmp_path):
+    """ddp eval stopped by SIGTERM (a scheduler, a robot's supervisor) unwinds like Ctrl-C: its envs close (a
+    real robot's backend stops) and it exits 128 + 15 with one line, instead of dying mid-motion."""
+    import signal
+    import threading
+    import time
+
+    import torch
+    import yaml
+
+    from conftest import runnable
+    from ddp.cli import main
+
+    recipe = tmp_path / "r.yaml"
+    recipe.write_text(yaml.safe_dump(runnable(train={"output_dir": str(tmp_path / "run")},
+                                              eval={"episodes": 400, "protocols": ["id"], "max_steps": 48})))
+    torch.set_num_threads(1)
+    assert main(["train", str(recipe), "--quiet"]) == 0
+    proc = subprocess.Popen([sys.executable, "-m", "ddp", "eval", str(recipe), "--checkpoint",
+                             str(tmp_path / "run" / "last.pt"), "--output-dir", str(tmp_path / "eval")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    seen = []
+    reader = threading.Thread(target=lambda: seen.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
+    reader.start()
+    deadline = time.time() + 180
+    while "1/400" not in "".join(seen) and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.5)  # until the first id episode is done: envs are open
+    assert proc.poll() is None, "".join(seen)[-2000:]
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(timeout=60)
+    reader.join(timeout=10)
+    err = "".join(seen)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert "ddp: stopped by SIGTERM" in err and "Traceback" not in err

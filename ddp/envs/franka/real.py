@@ -488,7 +488,8 @@ class FrankyBackend(FrankaBackend):
                 pass
         if getattr(self, "robot", None) is not None:
             try:
-                self.robot.join_motion(5.0)
+                if not self.robot.join_motion(5.0):  # still moving after 5 s: stop it rather than leave it running
+                    self.robot.stop()
             except Exception:
                 pass
             self._wait_gripper(10.0)
