@@ -31,8 +31,8 @@ unless a recovery re-checks again; ``recheck_until_id`` re-checks every cycle).
 
 A displaced object is tracked (``a^track = Delta p``) when the subtask that targets it is the current one
 in OOD mode: at the OOD onset, when the tracker first sees it move, or when its subtask begins; its
-recovery (``a^rec = -Delta p``) moves the end-effector only if it was tracked, so the shifts of an
-episode sum to zero.
+recovery (``a^rec = -Delta p``) moves the end-effector only if it was tracked, and reality does not
+resume while a tracked object waits for its recovery, so the shifts of an episode sum to zero.
 
 Nothing non-finite leaves it: observations are validated at the boundary
 (``ddp.safety.check_observation``); an environment whose observation or latents
@@ -240,6 +240,11 @@ class DDPController(KeyedModule):
         if s.displaced is None or s.recovered is None:
             return False
         return bool(self._targets_to_recover(s))
+
+    @staticmethod
+    def _awaits_recovery(s: EnvState) -> bool:
+        """The end-effector executed a^track for an object whose a^rec has not come yet (its subtask runs)."""
+        return s.tracked is not None and bool((s.tracked & ~s.recovered).any())
 
     @staticmethod
     def _accepted_scene(s: EnvState, offsets: torch.Tensor | None, b: int) -> bool:
@@ -477,7 +482,9 @@ class DDPController(KeyedModule):
                 s.ood = bool(ood_now[b])  # re-decided every cycle (substitution, simulator oracle)
             elif s.ood and s.recheck_after is not None and chunk_index[b] > s.recheck_after and finite[b]:
                 s.recheck_after = None
-                if not ood_now[b]:
+                if self._awaits_recovery(s):
+                    pass  # a tracking shift its recovery has not undone yet: OOD until then (it re-checks again)
+                elif not ood_now[b]:
                     s.ood = False  # D_R-I <= tau: return to reality
                 elif self.resume_after_recovery and self._targets_recovered(s):
                     s.ood = False  # every displaced target is back: reality, with the rest of the scene as it is

@@ -352,6 +352,25 @@ def test_a_later_subtasks_target_moved_before_it_began_is_tracked_when_it_begins
         assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
 
 
+def test_reality_does_not_resume_while_a_tracked_target_waits_for_its_recovery(tiny_recipe):
+    """Both targets moved: subtask 0's recovery (chunk 4) is also where subtask 1 begins and its target is
+    tracked. The re-check after that recovery (chunk 5) says ID, but the controller stays OOD until subtask
+    1's recovery has undone its tracking shift (the episode's shifts sum to zero)."""
+    exp = make_exp(tiny_recipe, subtasks=[{"target": 0, "trigger": {"name": "chunk_index", "chunk": 4}},
+                                          {"target": 1, "trigger": {"name": "chunk_index", "chunk": 6}},
+                                          {"target": None}])
+    first, second = [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]
+    ctrl = exp.make_controller()
+    ctrl.detector = ScriptedStickyDetector(ood_at={2})
+    ctrl.tracker = ScriptedTracker([first, second], from_chunk=2)
+    r = rollout(exp, ctrl)
+    assert r["ddp", "mode"].tolist() == [0, 0, 1, 1, 1, 1, 1, 0]
+    expected = [[0.0] * 3 for _ in range(CHUNKS)]
+    expected[2], expected[4], expected[6] = first, [-0.1, 0.1, 0.0], [-d for d in second]
+    assert shifts(r) == expected
+    assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
+
+
 # --------------------------------------------------------------------------- 5. controller.safe_lift
 def test_safe_lift_reaches_the_base_env_and_the_shift_is_exact(tiny_recipe):
     exp = make_exp(tiny_recipe, safe_lift=0.05)
