@@ -75,6 +75,25 @@ class _FakeBackend:
         self.grip.append(close)
 
 
+def test_a_backend_with_its_own_safety_box_clips_the_env_inside_both():
+    """The real robot's box (RealBackendConfig.workspace_low/high) and the env's (workspace_min/max): targets,
+    shifts and their applied amounts are computed in the intersection, as the backend executes them."""
+    import types
+
+    from ddp.envs.franka.env import FrankaEnv
+
+    backend = _FakeBackend()
+    backend.config = types.SimpleNamespace(workspace_low=(0.25, -0.45, 0.005), workspace_high=(0.70, 0.45, 0.50))
+    env = FrankaEnv(FrankaEnvConfig(task="press", **SMALL), backend=backend)
+    lo, hi = FrankaEnvConfig().workspace_min, FrankaEnvConfig().workspace_max
+    np.testing.assert_allclose(env.control.low, np.maximum(lo, (0.25, -0.45, 0.005)))
+    np.testing.assert_allclose(env.control.high, np.minimum(hi, (0.70, 0.45, 0.50)))
+    backend.config.workspace_low = (0.9, -0.45, 0.005)
+    backend.config.workspace_high = (1.0, 0.45, 0.5)
+    with pytest.raises(ValueError, match="do not overlap"):
+        FrankaEnv(FrankaEnvConfig(task="press", **SMALL), backend=backend)
+
+
 def test_control_clips_translation_rotation_and_workspace():
     backend = _FakeBackend()
     ctl = FrankaControl(backend, workspace_low=(0.2, -0.4, 0.0), workspace_high=(0.7, 0.4, 0.32),

@@ -302,8 +302,18 @@ class FrankaEnv(PointCloudEnv):
                 backend = make_sim_backend(cfg)
         self.backend = backend
         self._is_sim = hasattr(backend, "touching_gripper")
+        # a backend with its own safety box (the real robot's) clips inside it: the commanded targets, the
+        # shifts' applied amounts and ee_offset are computed in the intersection, so they are what it executes
+        low, high = np.asarray(cfg.workspace_min, float), np.asarray(cfg.workspace_max, float)
+        box = getattr(getattr(backend, "config", None), "workspace_low", None), \
+            getattr(getattr(backend, "config", None), "workspace_high", None)
+        if box[0] is not None and box[1] is not None:
+            low, high = np.maximum(low, box[0]), np.minimum(high, box[1])
+            if np.any(low >= high):
+                raise ValueError(f"env workspace {list(cfg.workspace_min)}..{list(cfg.workspace_max)} and the "
+                                 f"backend's {list(box[0])}..{list(box[1])} do not overlap")
         self.control = FrankaControl(
-            backend, workspace_low=cfg.workspace_min, workspace_high=cfg.workspace_max,
+            backend, workspace_low=low, workspace_high=high,
             max_translation=cfg.max_translation, max_rotation=cfg.max_rotation, max_lead=cfg.max_lead,
         )  # fmt: skip
         self._plan = cfg.displacement_schedule()
