@@ -31,8 +31,9 @@ unless a recovery re-checks again; ``recheck_until_id`` re-checks every cycle).
 
 A displaced object is tracked (``a^track = Delta p``) when the subtask that targets it is the current one
 in OOD mode: at the OOD onset, when the tracker first sees it move, or when its subtask begins; its
-recovery (``a^rec = -Delta p``) moves the end-effector only if it was tracked, and reality does not
-resume while a tracked object waits for its recovery, so the shifts of an episode sum to zero.
+recovery (``a^rec = -Delta p``) moves the end-effector only if it was tracked, by what the tracking shift
+executed (the env's ``ee_shift_applied``: a shift clipped at the workspace's edge is undone as clipped), and
+reality does not resume while a tracked object waits for its recovery, so the shifts of an episode sum to zero.
 
 Nothing non-finite leaves it: observations are validated at the boundary
 (``ddp.safety.check_observation``); an environment whose observation or latents
@@ -86,6 +87,9 @@ class EnvState:
     displaced: torch.Tensor | None = None  # C_disp as a mask over objects
     recovered: torch.Tensor | None = None  # objects already brought back
     tracked: torch.Tensor | None = None  # objects whose a^track the end-effector executed (a^rec undoes it)
+    followed: torch.Tensor | None = None  # [K, 3] the a^track each object's shift executed (as the env applied it)
+    last_track: int | None = None  # the object tracked in the last cycle, whose applied shift is read back
+    last_shift: torch.Tensor | None = None  # the shift requested in that cycle
     subtask: int = 0
     subtask_start: int = 0
     # resume_after_recovery: the tracked offsets when the controller returned to reality with displaced
@@ -97,7 +101,8 @@ class EnvState:
 class DDPController(KeyedModule):
     """Detect (D_R-I) -> track -> imagine -> recover, around a trained DreamDiffusionPolicy."""
 
-    default_in_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos", "chunk_index": "chunk_index"}
+    default_in_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos", "chunk_index": "chunk_index",
+                       "ee_shift_applied": "ee_shift_applied"}
     default_out_keys = {
         "action": "action",
         "ee_shift": "ee_shift",
@@ -275,6 +280,18 @@ class DDPController(KeyedModule):
             return
         ee_shift[b] += offsets[target]
         s.tracked[target] = True
+        s.followed[target] = offsets[target]
+        s.last_track = target
+
+    def _read_back_shifts(self, td) -> None:
+        """The env's ``ee_shift_applied`` (ChunkedEnv: the shift it executed, clipped to its workspace) for the
+        last cycle's request: what clipping cut from it is taken from that cycle's a^track, so the object's
+        a^rec undoes the shift that happened. Without the key the requested shift counts as executed."""
+        applied = td.get(self.key("ee_shift_applied"), None)
+        for b, s in enumerate(self.states):
+            if applied is not None and s.last_track is not None and s.last_shift is not None:
+                s.followed[s.last_track] = s.followed[s.last_track] + applied[b].float().cpu() - s.last_shift
+            s.last_track = s.last_shift = None
 
     def _subtask_ended(self, s: EnvState, obs, chunk: int) -> bool:
         trig = self._trigger(s)
@@ -445,6 +462,8 @@ class DDPController(KeyedModule):
             if s.recovered is None:
                 s.recovered = torch.zeros(num_objects, dtype=torch.bool)
                 s.tracked = torch.zeros(num_objects, dtype=torch.bool)
+                s.followed = torch.zeros(num_objects, 3)
+        self._read_back_shifts(td)
         if offsets is not None:
             # objects recovered before this cycle (a recovery below is only observable from the next one)
             td.set(("ddp", "recovered"), torch.stack([s.recovered.clone() for s in self.states]))
@@ -455,7 +474,8 @@ class DDPController(KeyedModule):
                 continue
             target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
             if s.ood and s.displaced is not None and self.recovery is not None:
-                shift, recovered = self.recovery.recover(s.offsets, s.displaced & ~s.recovered, target)
+                followed = torch.where(s.tracked[:, None], s.followed, s.offsets)  # tracked: what was executed
+                shift, recovered = self.recovery.recover(followed, s.displaced & ~s.recovered, target)
                 if target is not None and bool(s.tracked[target]):  # a^rec_j = -Delta p_Cj undoes a^track_j
                     ee_shift[b] += shift
                 s.recovered |= recovered
@@ -542,6 +562,8 @@ class DDPController(KeyedModule):
             if self.forecast_every_cycle:  # now, or in the background while the chunk executes
                 self._forecast_next()
 
+        for b, s in enumerate(self.states):
+            s.last_shift = ee_shift[b].clone() if s.last_track is not None else None
         td.set(self.key("action"), actions.to(env_device))
         td.set(self.key("ee_shift"), ee_shift)
         td.set(self.key("held"), torch.tensor(held))

@@ -371,6 +371,29 @@ def test_reality_does_not_resume_while_a_tracked_target_waits_for_its_recovery(t
     assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
 
 
+def test_a_tracking_shift_cut_by_the_workspace_is_undone_as_executed(tiny_recipe):
+    """The env clips the tracking shift at its workspace's edge (here x at +0.05 of the requested +0.2) and
+    reports what it executed (ee_shift_applied): the recovery undoes that, and the end-effector ends where
+    it started."""
+    exp = make_exp(tiny_recipe)
+    env = make_chunked_env(exp, seed=0)
+    requested = []
+
+    def clipped(delta, safe_lift=0.0):
+        requested.append([round(float(x), 6) for x in delta])
+        applied = np.minimum(np.asarray(delta, dtype=np.float64), 0.05)
+        env.base.ee = env.base.ee + applied
+        env.base.ee_offset = env.base.ee_offset + applied
+        return applied
+
+    env.base.shift_end_effector = clipped
+    r = rollout(exp, exp.make_controller(), env=env)
+    assert r["ddp", "mode"].tolist()[2] == 1 and requested[0] == DELTA
+    assert shifts(r)[4] == [-0.05, 0.0, 0.0]  # a^rec: minus what the tracking shift executed, not -DELTA
+    assert r["next", "ee_shift_applied"][2].tolist() == pytest.approx([0.05, 0.0, 0.0])
+    assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
+
+
 # --------------------------------------------------------------------------- 5. controller.safe_lift
 def test_safe_lift_reaches_the_base_env_and_the_shift_is_exact(tiny_recipe):
     exp = make_exp(tiny_recipe, safe_lift=0.05)

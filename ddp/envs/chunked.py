@@ -108,6 +108,9 @@ class ChunkedEnv(EnvBase):
                 spec[key] = obs[key].clone()
         spec["success"] = Categorical(2, shape=(1,), dtype=torch.bool, device=self.device)
         spec["chunk_index"] = Unbounded(shape=(1,), dtype=torch.int64, device=self.device)
+        # the end-effector shift the env executed before this chunk (the requested ee_shift, clipped to the
+        # workspace), so that a recovery can undo exactly what a tracking shift did
+        spec["ee_shift_applied"] = Unbounded(shape=(3,), dtype=torch.float32, device=self.device)
         self.observation_spec = Composite(spec, device=self.device)
         a = base.action_spec
         self.full_action_spec = Composite(
@@ -127,10 +130,12 @@ class ChunkedEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         self.base.set_seed(seed)
 
-    def _observation(self, last: TensorDictBase) -> TensorDictBase:
+    def _observation(self, last: TensorDictBase, applied=None) -> TensorDictBase:
         out = last.exclude("reward", "done", "terminated", "truncated", "success")
         out.set("success", torch.tensor([self._success], device=self.device))
         out.set("chunk_index", torch.tensor([self._chunk], dtype=torch.int64, device=self.device))
+        shift = torch.zeros(3) if applied is None else torch.as_tensor(applied, dtype=torch.float32).reshape(3)
+        out.set("ee_shift_applied", shift.to(self.device))
         return out
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -158,8 +163,9 @@ class ChunkedEnv(EnvBase):
         require_finite("action chunk", tensordict.get("action"), "chunked env")
         if shift is not None:
             require_finite("end-effector shift", shift, "chunked env")
+        applied = None
         if shift is not None and bool(shift.abs().max() > 0):
-            self.base.shift_end_effector(shift.detach().cpu().numpy(), safe_lift=self.safe_lift)
+            applied = self.base.shift_end_effector(shift.detach().cpu().numpy(), safe_lift=self.safe_lift)
         if self.recorder is not None:
             self._label = ChunkLabel.from_tensordict(tensordict, self._chunk, self._success)
         inner = tensordict.select("action").exclude("next")
@@ -167,7 +173,7 @@ class ChunkedEnv(EnvBase):
         self._label = None
         self._chunk += 1
         reward = last.get("reward").reshape(-1, *self.reward_spec.shape).sum(0)
-        out = self._observation(last)
+        out = self._observation(last, applied)
         out.set("reward", reward)
         for key in ("done", "terminated", "truncated"):
             out.set(key, last.get(key))
