@@ -8,6 +8,7 @@ are validated against that plugin's own config dataclass by
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -339,6 +340,26 @@ def _check_cross_section(recipe: Recipe, parts: dict[str, Part], source: str | N
                                   f"feed the model clouds it was not built for", source=source, key=f"env.{name}")
 
 
+def _refuse_code_paths(part: Part, key: str, source: str | None) -> None:
+    """An untrusted recipe (read from a checkpoint) may not move a part's options that name code to import
+    (config fields with ``metadata={"imports_code": True}``, e.g. foundationpose's repo and module) off
+    their defaults: importing them would run that code."""
+    config = part.config
+    if not dataclasses.is_dataclass(config):
+        return
+    for f in dataclasses.fields(config):
+        if f.metadata.get("imports_code") and getattr(config, f.name) != _default(f):
+            raise RecipeError(f"names code to import ({getattr(config, f.name)!r}); a recipe read from a checkpoint "
+                              "may set it only when trusted: pass trust_plugins=True (--trust-plugins)",
+                              source=source, key=f"{key}.{f.name}")
+
+
+def _default(f: dataclasses.Field):
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else dataclasses.MISSING
+
+
 def validate(data: dict, source: str | None, *, import_plugins: bool = True) -> tuple[Recipe, dict[str, Part], dict]:
     """Recipe dataclass, resolved parts, and the fully resolved (defaults filled) dict.
 
@@ -365,6 +386,8 @@ def validate(data: dict, source: str | None, *, import_plugins: bool = True) -> 
             raise
         if dotted == "env":
             part = _env_follows_task(part, _get(resolved, dotted), recipe.task)
+        if not import_plugins:
+            _refuse_code_paths(part, dotted, source)
         parts[dotted] = part
         _set(resolved, dotted, part.as_dict())
     _check_cross_section(recipe, parts, source)

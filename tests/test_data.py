@@ -35,6 +35,28 @@ def test_episodes_save_load_round_trip(tmp_path):
     assert torch.equal(back.episode(1)["action"][:, 0], torch.arange(9.0) + 100)
 
 
+class _Payload:  # any picklable object: loading it would run code of the file's choosing
+    pass
+
+
+def test_loading_episodes_never_unpickles(tmp_path):
+    """An episode directory whose steps hold a pickled leaf (tensordict writes other.pickle for a non-tensor)
+    is refused in one line instead of unpickled (pickle runs code)."""
+    import pytest
+    from tensordict import NonTensorData
+
+    from ddp.errors import DDPError
+
+    e = _episodes()
+    e.save(tmp_path / "demos")
+    e.steps["x"] = NonTensorData(data=_Payload(), batch_size=e.steps.batch_size)
+    e.save(tmp_path / "planted")
+    assert (tmp_path / "planted" / "steps" / "x" / "other.pickle").exists()
+    with pytest.raises(DDPError, match="something other than tensors"):
+        Episodes.load(tmp_path / "planted")
+    assert Episodes.load(tmp_path / "demos").num_episodes == 3
+
+
 def test_sequence_dataset_batches_match_items():
     ds = SequenceDataset(_episodes(), 5, pad_before=1, pad_after=3)
     b = ds.batch(torch.tensor([0, 4, len(ds) - 1]))

@@ -187,3 +187,21 @@ def test_exponent_without_a_dot_is_a_float(tmp_path, good):
     assert exp.recipe.train.lr == pytest.approx(3e-4) and exp.recipe.train.weight_decay == pytest.approx(1e-6)
     assert exp.recipe.world_model.weight == pytest.approx(0.5)
     assert error_of(good, ["train.lr=3e"]).startswith("--set train.lr=3e: train.lr: expected float, got '3e'")
+
+
+def test_an_untrusted_recipe_may_not_name_code_to_import(tiny_recipe, tmp_path):
+    """A recipe read from a checkpoint (not trusted) that points foundationpose's repo / module at code of its
+    choosing is refused before anything is built; the user's own recipe, or --trust-plugins, may."""
+    from ddp.schema import validate
+
+    bundle = tmp_path / "bundle"
+    (bundle / "evilpkg").mkdir(parents=True)
+    (bundle / "evilpkg" / "__init__.py").write_text("open(__file__ + '.ran', 'w').close()\n")
+    for tracker in ({"name": "foundationpose", "repo": str(bundle)}, {"name": "foundationpose", "module": "evilpkg.x"}):
+        tiny_recipe["controller"] = {"tracker": tracker}
+        with pytest.raises(RecipeError, match=r"controller\.tracker\.(repo|module).*names code to import.*trust"):
+            validate(tiny_recipe, "<checkpoint>", import_plugins=False)
+        validate(tiny_recipe, "<recipe>", import_plugins=True)  # vouched for: accepted (built only when used)
+    tiny_recipe["controller"] = {"tracker": {"name": "foundationpose"}}  # defaults import nothing of the file's
+    validate(tiny_recipe, "<checkpoint>", import_plugins=False)
+    assert not (bundle / "evilpkg" / "__init__.py.ran").exists()

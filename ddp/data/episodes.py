@@ -77,6 +77,10 @@ class Episodes:
         meta = json.loads(meta_file.read_text())
         if meta.get("format") != FORMAT:
             raise DDPError(f"{path}: meta.json format is {meta.get('format')!r}, expected {FORMAT!r}")
-        steps = TensorDict.load_memmap(path / "steps")
+        try:  # tensors only: a pickled leaf (tensordict's other.pickle) would run code when loaded
+            steps = TensorDict.load_memmap(path / "steps", allow_pickle=False)
+        except RuntimeError as err:
+            raise DDPError(f"{path}: the episode data holds something other than tensors (refused: loading "
+                           f"it could run code): {str(err).splitlines()[0]}") from None
         ends = torch.load(path / "episode_ends.pt", weights_only=True)
         return cls(steps, ends)

@@ -76,8 +76,10 @@ EstimatorFactory = Callable[[int], ObjectPoseEstimator]
 
 @dataclass
 class FoundationPoseTrackerConfig:
-    repo: str | None = None  # FoundationPose checkout (added to sys.path); None: `module` is importable as is
-    module: str = "estimater"  # the module with FoundationPose, ScorePredictor, PoseRefinePredictor
+    # FoundationPose checkout (added to sys.path); None: `module` is importable as is. Both name code to import:
+    # a recipe read from a checkpoint may set them only when trusted (--trust-plugins)
+    repo: str | None = field(default=None, metadata={"imports_code": True})
+    module: str = field(default="estimater", metadata={"imports_code": True})  # FoundationPose, ScorePredictor, ...
     weights_dir: str | None = None  # checked for the two weight folders; default <repo>/weights (where FP reads)
     meshes: list[str] = field(default_factory=list)  # one mesh file per object, env object order, in metres
     mesh_scale: float = 1.0  # multiply mesh coordinates (e.g. 0.001 for millimetre meshes)
