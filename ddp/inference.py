@@ -273,8 +273,11 @@ class DDPController(KeyedModule):
 
     def _track(self, s: EnvState, b: int, ee_shift: torch.Tensor, offsets: torch.Tensor) -> None:
         """a^track_j = Delta p_Cj for the current subtask's target, if it is displaced and not yet tracked
-        or recovered (``offsets``: this environment's [K, 3])."""
-        target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
+        or recovered (``offsets``: this environment's [K, 3]). Once every subtask has ended (the last one's
+        trigger fired) there is no current target: a shift then would have no recovery left to undo it."""
+        if s.subtask >= len(self.subtasks):
+            return
+        target = self.subtasks[s.subtask].target
         if (not self.track or target is None or s.displaced is None or not bool(s.displaced[target])
                 or bool(s.recovered[target]) or bool(s.tracked[target])):
             return
@@ -487,7 +490,10 @@ class DDPController(KeyedModule):
         ood_now = self.detector(td).get(self.detector.key("ood")).reshape(B).tolist()
         ood_now = [bool(o) or not bool(finite[b]) for b, o in enumerate(ood_now)]  # non-finite input: OOD
         for b, s in enumerate(self.states):
-            if (not s.ood and ood_now[b] and (self.detector.sticky or s.has_forecast or not finite[b])
+            # a non-sticky detector (oracle, substitution) enters OOD once there is a forecast to imagine from,
+            # or at once for a controller that does not imagine (the DP3 ablation: tracking on real latents)
+            if (not s.ood and ood_now[b] and (self.detector.sticky or s.has_forecast or not self.imagine
+                                               or not finite[b])
                     and not (finite[b] and self._accepted_scene(s, offsets, b))):
                 s.ood = True  # OOD_Mode <- True
                 if not finite[b]:  # a sensor fault, not a displacement: re-check D_R-I once inputs are finite

@@ -394,6 +394,28 @@ def test_a_tracking_shift_cut_by_the_workspace_is_undone_as_executed(tiny_recipe
     assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
 
 
+def test_the_dp3_ablation_tracks_and_recovers_with_the_oracle_detector(tiny_recipe):
+    """No world model (the DP3 ablation, ood_tracking with the controller's own tracker): the oracle detector's
+    OOD starts tracking at once, though no forecast can ever exist, and the recovery undoes it."""
+    tiny_recipe["world_model"]["enabled"] = False
+    exp = make_exp(tiny_recipe)
+    r = rollout(exp, exp.make_controller())
+    assert r["ddp", "mode"].tolist()[2] == 1 and not r["ddp", "imagined"].any()
+    assert shifts(r)[2] == DELTA and shifts(r)[4] == [-d for d in DELTA]
+    assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
+
+
+def test_nothing_is_tracked_once_every_subtask_has_ended(tiny_recipe):
+    """The last subtask's trigger fired at chunk 1, before the displacement is seen (chunk 2): no tracking
+    shift, which no recovery could undo any more."""
+    exp = make_exp(tiny_recipe, subtasks=[{"target": 0, "trigger": {"name": "chunk_index", "chunk": 1}}])
+    ctrl = exp.make_controller()
+    ctrl.detector = ScriptedStickyDetector(ood_at={2})
+    r = rollout(exp, ctrl)
+    assert r["ddp", "mode"].tolist()[2] == 1 and r["ddp", "subtask"].tolist()[2] == 1
+    assert shifts(r) == [[0.0] * 3] * CHUNKS
+
+
 # --------------------------------------------------------------------------- 5. controller.safe_lift
 def test_safe_lift_reaches_the_base_env_and_the_shift_is_exact(tiny_recipe):
     exp = make_exp(tiny_recipe, safe_lift=0.05)
