@@ -100,6 +100,8 @@ class EMAConfig:
     def __post_init__(self):
         if not 0.0 <= self.min_value <= self.max_value <= 1.0:
             raise ValueError(f"need 0 <= min_value <= max_value <= 1; got {self.min_value}, {self.max_value}")
+        if not self.inv_gamma > 0:  # it divides the step count in the decay's power warm-up
+            raise ValueError(f"inv_gamma must be > 0; got {self.inv_gamma}")
 
 
 @dataclass
@@ -141,6 +143,10 @@ class TrainConfig:
             raise ValueError(f"max_steps must be >= 1 or null; got {self.max_steps}")
         if self.checkpoint_every_epochs < 1:
             raise ValueError(f"checkpoint_every_epochs must be >= 1; got {self.checkpoint_every_epochs}")
+        if self.log_every_steps < 1:
+            raise ValueError(f"log_every_steps must be >= 1; got {self.log_every_steps}")
+        if self.num_threads is not None and self.num_threads < 1:
+            raise ValueError(f"num_threads must be >= 1 or null; got {self.num_threads}")
 
 
 @dataclass

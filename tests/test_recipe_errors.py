@@ -205,3 +205,13 @@ def test_an_untrusted_recipe_may_not_name_code_to_import(tiny_recipe, tmp_path):
     tiny_recipe["controller"] = {"tracker": {"name": "foundationpose"}}  # defaults import nothing of the file's
     validate(tiny_recipe, "<checkpoint>", import_plugins=False)
     assert not (bundle / "evilpkg" / "__init__.py.ran").exists()
+
+
+@pytest.mark.parametrize("override, message", [
+    ("train.log_every_steps=0", "log_every_steps must be >= 1; got 0"),
+    ("train.num_threads=-2", "num_threads must be >= 1 or null; got -2"),
+    ("ema.inv_gamma=0", "inv_gamma must be > 0; got 0"),
+])
+def test_values_that_would_crash_mid_run_are_refused_up_front(tiny_recipe, override, message):
+    with pytest.raises(RecipeError, match=message.replace(".", r"\.", 1)):
+        build(tiny_recipe, [override])
