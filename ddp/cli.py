@@ -134,12 +134,17 @@ def _env_overrides(pairs: list[str]) -> dict:
     """``KEY=VALUE`` pairs (values parsed as YAML) -> a dict; one line for a malformed pair."""
     import yaml
 
+    from ddp.recipe import load_yaml
+
     out = {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep or not key:
             raise DDPError(f"--env: expected KEY=VALUE, e.g. --env displacement_chunk=4; got {pair!r}")
-        out[key.strip()] = yaml.safe_load(value)
+        try:  # the recipes' YAML (1.2 numbers: 1e-2 is a float)
+            out[key.strip()] = load_yaml(value)
+        except yaml.YAMLError as err:
+            raise DDPError(f"--env: {key.strip()}: not a YAML value ({str(err).splitlines()[0]}): {value!r}") from None
     return out
 
 

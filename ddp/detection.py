@@ -178,6 +178,25 @@ SCORE_VARIANTS: dict[str, dict] = {
 }
 
 
+def _check_env(exp, env: dict) -> None:
+    """``--env`` overrides checked against the env's config before any rollout: one line for an unknown key
+    (with the closest name) or a value the config refuses."""
+    import dataclasses
+
+    from ddp.errors import RecipeError, suggest
+
+    config = exp.parts["env"].config
+    fields = {f.name for f in dataclasses.fields(config)}
+    for key in env:
+        if key not in fields:
+            raise RecipeError(f"env '{exp.parts['env'].plugin.name}' has no option {key!r}{suggest(key, fields)}",
+                              source="--env")
+    try:
+        dataclasses.replace(config, **env)
+    except (TypeError, ValueError) as err:
+        raise RecipeError(str(err).splitlines()[0], source="--env") from None
+
+
 def _rollouts(exp, protocol: str, *, episodes: int, seed: int, env: dict, progress: bool, num_envs: int,
               parallel: bool) -> list[dict]:
     from ddp.eval_runner import env_overrides, rollout_episodes
@@ -221,6 +240,8 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
 
     if not exp.model.has_world_model:
         raise ValueError(f"{exp.recipe.name}: detection needs a world model (world_model.enabled is false)")
+    if env:
+        _check_env(exp, dict(env))
     cfg = exp.recipe.eval
     seed = cfg.seed if seed is None else seed
     n_cal = calibration_episodes or cfg.calibration_episodes
