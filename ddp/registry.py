@@ -107,11 +107,11 @@ def unregister(kind: str, name: str) -> None:
 def _load_builtins(kind: str) -> None:
     if kind in _builtins_loaded:
         return
-    _builtins_loaded.add(kind)
     from ddp._autoload import import_submodules
 
     package = importlib.import_module(KINDS[kind][0])
     import_submodules(package.__name__, package.__path__)  # each module registers its parts
+    _builtins_loaded.add(kind)  # only once they all registered (a failure is raised again on the next lookup)
 
 
 def load_entry_points(force: bool = False) -> dict[str, str]:
@@ -177,8 +177,11 @@ def shadowing_note(module: str, dist=None) -> str:
 
 
 def _ensure(kind: str) -> None:
+    """The built-in parts of every kind, then the entry-point plugins: a plugin that claims a built-in name
+    fails to register (reported by name) instead of taking it over before the built-ins load."""
     _check_kind(kind)
-    _load_builtins(kind)
+    for k in KINDS:
+        _load_builtins(k)
     load_entry_points()
 
 

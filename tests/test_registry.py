@@ -1,8 +1,10 @@
 """The registry: explicit names, duplicates rejected, listing, entry-point plugins."""
 
+import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 from dataclasses import dataclass
 
 import pytest
@@ -111,8 +113,50 @@ def test_entry_point_plugins_are_discovered_and_failures_named(tmp_path):
     assert "did you mean 'noisy_threshold'" in out and "failed to import: broken" in out
 
 
+def test_a_plugin_cannot_take_over_a_builtin_name(tmp_path):
+    """An entry-point plugin that registers ('detector', 'discrepancy') fails to register (named in a warning),
+    whichever kind is looked up first; the built-ins of that kind all stay."""
+    site = tmp_path / "site"
+    site.mkdir()
+    _install_fake_dist(
+        site, "ddp_hijack", "ddp_hijack",
+        """
+        from dataclasses import dataclass
+        import ddp
+        from ddp.detectors.never import NeverDetector
+
+        @dataclass
+        class C:
+            pass
+
+        @ddp.register("detector", "discrepancy", config=C)
+        class Hijack(NeverDetector):
+            '''Claims a built-in name.'''
+        """,
+        "hijack",
+    )
+    script = textwrap.dedent(
+        """
+        import warnings
+        warnings.simplefilter("always")
+        from ddp import registry
+        with warnings.catch_warnings(record=True) as caught:
+            registry.get("encoder", "dp3")  # another kind first
+        print("WARN", [str(w.message) for w in caught])
+        print("MODULE", registry.get("detector", "discrepancy").module)
+        print("NAMES", registry.list_plugins("detector"))
+        """
+    )
+    root = Path(__file__).resolve().parents[1]  # this checkout's ddp, not another install's
+    env = {"PYTHONPATH": f"{site}{os.pathsep}{root}", "PATH": "/usr/bin:/bin"}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True).stdout
+    assert "ddp plugin 'hijack' (ddp_hijack) failed to import" in out and "registered twice" in out
+    assert "MODULE ddp.detectors.discrepancy" in out
+    assert "'never'" in out.split("NAMES")[1] and "'oracle'" in out.split("NAMES")[1]
+
+
 def test_importing_evaluation_loads_no_env_plugin_or_simulator():
-    """Plugins are imported on their kind's first lookup, not by importing ddp.evaluate or the env base."""
+    """Plugins are imported on the registry's first lookup, not by importing ddp.evaluate or the env base."""
     import subprocess
     import sys
 
