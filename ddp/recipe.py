@@ -169,7 +169,16 @@ def load_recipe(path: str | os.PathLike | dict, overrides: Iterable[str] = ()) -
     """The merged, overridden recipe as a plain dict, and its source name."""
     if isinstance(path, dict):
         data, source = copy.deepcopy(path), "<dict>"
-        data.pop(BASE_KEY, None)
+        bases = data.pop(BASE_KEY, None)
+        if bases is not None:  # resolved against the working directory (a dict has no folder of its own)
+            if isinstance(bases, str):
+                bases = [bases]
+            if not isinstance(bases, list) or not all(isinstance(b, str) for b in bases):
+                raise RecipeError(f"must be a path or a list of paths, got {bases!r}", source=source, key=BASE_KEY)
+            merged: dict = {}
+            for base in bases:
+                merged = merge(merged, load_yaml_tree(base, _referenced_by=source))
+            data = merge(merged, data)
     else:
         data, source = load_yaml_tree(path), str(path)
     return apply_overrides(data, overrides), source

@@ -215,3 +215,14 @@ def test_an_untrusted_recipe_may_not_name_code_to_import(tiny_recipe, tmp_path):
 def test_values_that_would_crash_mid_run_are_refused_up_front(tiny_recipe, override, message):
     with pytest.raises(RecipeError, match=message.replace(".", r"\.", 1)):
         build(tiny_recipe, [override])
+
+
+def test_a_dict_recipe_resolves_its_base_from_the_working_directory():
+    """build({"base": ...}) merges the base file (relative to the working directory) instead of dropping it;
+    a base that does not exist is one line."""
+    from ddp.recipe import load_recipe
+
+    data, _ = load_recipe({"base": "recipes/metaworld/quickstart_ddp.yaml", "name": "mine"})
+    assert data["name"] == "mine" and data["task"]["num_points"] == 128 and data["env"]["task"] == "drawer-open"
+    with pytest.raises(RecipeError, match="base recipe 'recipes/none.yaml' not found"):
+        load_recipe({"base": "recipes/none.yaml"})
