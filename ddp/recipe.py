@@ -26,10 +26,26 @@ BASE_KEY = "base"
 
 
 class RecipeLoader(yaml.SafeLoader):
-    """PyYAML's safe loader with YAML 1.2 floats: ``lr: 3e-4`` is a float, not the string '3e-4'."""
+    """PyYAML's safe loader with YAML 1.2 numbers: ``lr: 3e-4`` is a float, not the string '3e-4', and
+    ``seed: 010`` is 10, not octal 8 (``0o10`` is 8, ``0x10`` 16; ``1:30`` is a string, not 90)."""
 
 
-RecipeLoader.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+_INT = "tag:yaml.org,2002:int"
+RecipeLoader.yaml_implicit_resolvers = {
+    k: [(tag, rx) for tag, rx in v if tag != _INT] for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+RecipeLoader.add_implicit_resolver(_INT, re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"),
+                                   list("-+0123456789"))
+
+
+def _construct_int(loader: yaml.SafeLoader, node: yaml.Node) -> int:
+    text = loader.construct_scalar(node)
+    if text.startswith(("0o", "0x")):
+        return int(text[2:], 8 if text[1] == "o" else 16)
+    return int(text, 10)
+
+
+RecipeLoader.add_constructor(_INT, _construct_int)
 RecipeLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
     re.compile(r"""^[-+]?(?:[0-9][0-9_]*\.[0-9_]*(?:[eE][-+]?[0-9]+)?|\.[0-9_]+(?:[eE][-+]?[0-9]+)?

@@ -226,3 +226,12 @@ def test_a_dict_recipe_resolves_its_base_from_the_working_directory():
     assert data["name"] == "mine" and data["task"]["num_points"] == 128 and data["env"]["task"] == "drawer-open"
     with pytest.raises(RecipeError, match="base recipe 'recipes/none.yaml' not found"):
         load_recipe({"base": "recipes/none.yaml"})
+
+
+def test_recipe_numbers_follow_yaml_1_2():
+    """YAML 1.1 read seed: 010 as octal 8 and 1:30 as 90; recipes and --set read YAML 1.2 numbers."""
+    from ddp.recipe import load_yaml, parse_override
+
+    assert load_yaml("{a: 010, b: 0o10, c: 0x10, d: 1:30, e: 3e-4, f: -7}") == {
+        "a": 10, "b": 8, "c": 16, "d": "1:30", "e": 3e-4, "f": -7}
+    assert parse_override("seed=010") == (["seed"], 10)
