@@ -75,6 +75,8 @@ def describe_mismatch(model: torch.nn.Module, weights: dict, limit: int = 3) -> 
         for k in own
         if k in weights and hasattr(weights[k], "shape") and tuple(weights[k].shape) != tuple(own[k].shape)
     ]
+    shapes += [f"{k} is a {type(weights[k]).__name__}, not a tensor" for k in own
+               if k in weights and not isinstance(weights[k], torch.Tensor)]
 
     def part(label: str, items: list[str]) -> str:
         more = f" (+{len(items) - limit} more)" if len(items) > limit else ""

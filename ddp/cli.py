@@ -7,6 +7,7 @@ import dataclasses
 import fnmatch
 import os
 import sys
+import zipfile
 from pathlib import Path
 
 from ddp.errors import DDPError
@@ -189,7 +190,7 @@ def _detect(args) -> int:
             raise DDPError(f"--rollouts: no such file: {args.rollouts}")
         try:
             rollouts = load_rollouts(args.rollouts)
-        except (OSError, ValueError) as err:
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:  # a truncated or foreign .npz
             raise DDPError(f"--rollouts: {args.rollouts} is not a ddp detect rollouts file ({err})") from None
     try:
         rep = detect(exp, episodes=args.episodes, calibration_episodes=args.calibration_episodes, alpha=args.alpha,

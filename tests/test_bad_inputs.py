@@ -197,6 +197,13 @@ CASES = [
      "--scores: unknown score 'point_newst'; did you mean 'point_newest'"),
     ("detect-bad-env-pair", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--env", "displacement_chunk"],
      "--env: expected KEY=VALUE"),
+    ("detect-truncated-rollouts", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--rollouts",
+                                                 (t.joinpath("r.npz").write_bytes(b"PK\x03\x04broken"), str(t / "r.npz"))[1]],
+     "is not a ddp detect rollouts file"),
+    ("eval-weight-not-a-tensor", lambda t, tr: ["eval", tr["recipe"], "--checkpoint",
+                                                fake_checkpoint(t / "x.pt", {**ckpt_state(tr), "ema": {
+                                                    k: (3 if k.endswith(".weight") else v) for k, v in ckpt_state(tr)["ema"].items()}})],
+     "is a int, not a tensor"),
     ("detect-env-not-yaml", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--env", "displacement_delta=[1,"],
      "--env: displacement_delta: not a YAML value"),
     ("detect-unknown-env-key", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--env", "displacment_chunk=2"],
