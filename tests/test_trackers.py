@@ -301,6 +301,20 @@ def test_gripper_passing_by_does_not_swallow_a_displacement(scene):
     assert not carried.any() and mm(off[1] - delta) < 4.0
 
 
+def test_an_object_displaced_away_from_a_hovering_gripper_is_not_taken_as_put_down(scene):
+    """The gripper comes within reach of box a (about to grasp it); then someone moves the box 15 cm while the
+    gripper stays: the box did not move with the hand, so it reads displaced (not re-anchored there)."""
+    tracker = pointcloud()
+    track(tracker, scene, 0)
+    hover = A0 + [0.0, 0.0, 0.045]
+    off, _, carried = track(tracker, scene, 1, ee=hover)
+    assert carried[0] and np.all(off[0] == 0)
+    delta = np.array([0.0, 0.15, 0.0])
+    scene.place(0, A0 + delta)
+    off, _, carried = track(tracker, scene, 2, ee=hover)
+    assert not carried[0] and mm(off[0] - delta) < 4.0, off[0]
+
+
 def test_partly_hidden_object_that_did_not_move_reads_zero(scene):
     tracker = pointcloud()
     track(tracker, scene, 0)

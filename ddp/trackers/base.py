@@ -58,6 +58,7 @@ class CarriedState:
     grasp_disp: np.ndarray | None = None  # displacement when it came near the gripper
     ee_rel: np.ndarray | None = None  # its position relative to the end-effector then
     pred: np.ndarray | None = None  # where it is if it moves with the hand (while carried)
+    held_at: np.ndarray | None = None  # where it last was while near the gripper (measured, or else ``pred``)
     last_disp: np.ndarray = field(default_factory=lambda: np.zeros(3))  # last measured displacement
 
     def near_gripper(self, ee: np.ndarray | None, carried_radius: float) -> bool:
@@ -86,8 +87,10 @@ class CarriedState:
         end-effector; an unmeasured one keeps its previous state (hidden in the hand, it stays carried).
         An object near the gripper may be moving with the robot: its offset reads zero. When it is next
         measured away from the gripper it is re-anchored where it is if it moved while near the gripper
-        (the robot put it down there); otherwise (the gripper only passed by) it reports its offset as
-        before. Offsets shorter than ``min_offset`` read zero.
+        and is now where the hand left it (within ``carried_radius`` of where it last was while near: the
+        robot put it down there); otherwise (the gripper only passed by, or someone moved it away from the
+        hovering gripper) it reports its offset from the anchor. Offsets shorter than ``min_offset`` read
+        zero.
         """
         zero = np.zeros(3)
         if disp is not None:
@@ -98,12 +101,17 @@ class CarriedState:
                 self.carried = True
                 self.grasp_disp = np.array(self.last_disp, dtype=np.float64)
             self.ee_rel = self.last - ee if disp is not None or self.ee_rel is None else self.ee_rel
+            # where it is while near the hand: measured, or (hidden in it) where the hand holds it
+            self.held_at = np.array(position if disp is not None else self.pred if self.pred is not None
+                                    else self.last, dtype=np.float64)
             return zero, True
         if disp is None:
             return zero, False
         if self.carried:
             self.carried = False
-            if np.linalg.norm(disp - self.grasp_disp) >= min_offset:
+            moved = np.linalg.norm(disp - self.grasp_disp) >= min_offset
+            left_there = self.held_at is None or np.linalg.norm(position - self.held_at) <= carried_radius
+            if moved and left_there:
                 self.anchor = disp  # moved by the robot: this is where it was put down
         off = disp - self.anchor
         return (off if np.linalg.norm(off) >= min_offset else zero), False
