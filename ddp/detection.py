@@ -181,20 +181,9 @@ SCORE_VARIANTS: dict[str, dict] = {
 def _check_env(exp, env: dict) -> None:
     """``--env`` overrides checked against the env's config before any rollout: one line for an unknown key
     (with the closest name) or a value the config refuses."""
-    import dataclasses
+    from ddp.eval_runner import check_env_options
 
-    from ddp.errors import RecipeError, suggest
-
-    config = exp.parts["env"].config
-    fields = {f.name for f in dataclasses.fields(config)}
-    for key in env:
-        if key not in fields:
-            raise RecipeError(f"env '{exp.parts['env'].plugin.name}' has no option {key!r}{suggest(key, fields)}",
-                              source="--env")
-    try:
-        dataclasses.replace(config, **env)
-    except (TypeError, ValueError) as err:
-        raise RecipeError(str(err).splitlines()[0], source="--env") from None
+    check_env_options(exp, env, source="--env")
 
 
 def _rollouts(exp, protocol: str, *, episodes: int, seed: int, env: dict, progress: bool, num_envs: int,

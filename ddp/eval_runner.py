@@ -21,6 +21,26 @@ from ddp.protocols.base import EvalProtocol
 from ddp.video import VideoSettings
 
 
+def check_env_options(exp, options: dict, *, source, key: str | None = None, needed_by: str | None = None) -> None:
+    """Every key of ``options`` is an option of the recipe's env config, and the config accepts the values:
+    else one line naming the env and the offending key (with the closest option name), or what the config
+    refused. ``needed_by`` words the error for options a protocol needs ("... does not support X needed by
+    ..."); otherwise an unknown key reads "has no option X"."""
+    env = exp.parts["env"]
+    fields = {f.name for f in dataclasses.fields(env.config)}
+    missing = sorted(set(options) - fields)
+    if missing and needed_by is not None:
+        raise RecipeError(f"env '{env.plugin.name}' does not support {', '.join(missing)} needed by {needed_by}",
+                          source=source, key=key)
+    if missing:
+        raise RecipeError(f"env '{env.plugin.name}' has no option {missing[0]!r}{suggest(missing[0], fields)}",
+                          source=source, key=key)
+    try:
+        dataclasses.replace(env.config, **options)
+    except (TypeError, ValueError) as err:
+        raise RecipeError(str(err).splitlines()[0], source=source, key=key) from None
+
+
 def env_overrides(exp, protocol: EvalProtocol, max_steps: int | None) -> dict:
     fields = {f.name for f in dataclasses.fields(exp.parts["env"].config)}
     over = dict(exp.recipe.eval.env)
@@ -32,12 +52,7 @@ def env_overrides(exp, protocol: EvalProtocol, max_steps: int | None) -> dict:
         over.update(occlusion_chunk=exp.recipe.eval.occlusion_chunk, occlusion_chunks=exp.recipe.eval.occlusion_chunks)
     if max_steps is not None:
         over["max_episode_steps"] = max_steps
-    missing = sorted(set(over) - fields)
-    if missing:
-        raise RecipeError(
-            f"env '{exp.parts['env'].plugin.name}' does not support {', '.join(missing)} needed by this protocol",
-            source=exp.source, key="env",
-        )
+    check_env_options(exp, over, source=exp.source, key="env", needed_by="this protocol")
     return over
 
 
@@ -210,11 +225,7 @@ def calibration_env(exp) -> dict:
         config = dataclasses.replace(exp.parts["env"].config, **overrides)
         held_out = getattr(config, "held_out_initial_states", None)
         extra = held_out() if callable(held_out) else {}
-    fields = {f.name for f in dataclasses.fields(exp.parts["env"].config)}
-    missing = sorted(set(extra) - fields)
-    if missing:
-        raise RecipeError(f"env '{exp.parts['env'].plugin.name}' has no option {', '.join(missing)}"
-                          f"{suggest(missing[0], fields)}", source=exp.source, key="eval.calibration_env")
+    check_env_options(exp, {**overrides, **extra}, source=exp.source, key="eval.calibration_env")
     return {**overrides, **extra}
 
 

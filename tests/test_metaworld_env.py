@@ -350,7 +350,10 @@ def test_calibration_draws_initial_states_the_evaluation_never_does(make_env):
     exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.calibration_env={}"])
     assert calibration_env(exp)["seed_tasks"] == 1  # asked for the evaluation's own env
     exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.calibration_env={seed_task: 3}"])
-    with pytest.raises(RecipeError, match="eval.calibration_env.*no option seed_task.*seed_tasks"):
+    with pytest.raises(RecipeError, match="eval.calibration_env.*no option 'seed_task'.*seed_tasks"):
+        calibration_env(exp)
+    exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.calibration_env={settle_steps: -1}"])
+    with pytest.raises(RecipeError, match="eval.calibration_env.*settle_steps must be >= 0"):  # a value the config refuses
         calibration_env(exp)
 
 
