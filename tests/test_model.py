@@ -149,6 +149,17 @@ def test_ema_decay_schedule():
     assert ema_decay(5, EMAConfig(update_after_step=10)) == 0.0
 
 
+def test_ema_updates_follow_dp3_warm_up():
+    """DP3's EMAModel.step takes the decay of the updates made before it, then counts: its first two
+    updates copy the weights and the third averages with 1 - 2 ** -0.75 (ddp ran one update ahead)."""
+    from ddp.models.ema import EMA
+
+    model = torch.nn.Linear(2, 2)
+    ema = EMA(model, EMAConfig())
+    assert [ema.update(model) for _ in range(3)] == [0.0, 0.0, pytest.approx(1 - 2 ** -0.75)]
+    assert int(ema.optimization_step) == 3
+
+
 def test_ema_tracks_the_weights(exp):
     from ddp.models.ema import EMA
 
@@ -160,6 +171,7 @@ def test_ema_tracks_the_weights(exp):
             p.add_(1.0)
     ema.update(m)  # first update: decay 0 -> copy
     assert torch.allclose(next(ema.module.parameters()), p0 + 1.0)
+    ema.update(m)  # the second too (DP3's warm-up)
     with torch.no_grad():
         for p in m.parameters():
             p.add_(1.0)

@@ -13,8 +13,10 @@ from ddp.schema import EMAConfig
 def ema_decay(step: int, cfg: EMAConfig) -> float:
     """decay = 1 - (1 + step / inv_gamma) ** -power, clamped to [min_value, max_value].
 
-    ``step`` counts optimiser steps after ``update_after_step``; decay is 0 at
-    the first update (the average starts as a copy of the weights).
+    ``step`` is the number of EMA updates made before this one (DP3's and
+    Diffusion Policy's ``optimization_step``); decay is 0 for the first two
+    updates after ``update_after_step`` (the average starts as a copy of the
+    weights).
     """
     step = step - cfg.update_after_step - 1
     if step <= 0:
@@ -35,8 +37,8 @@ class EMA(nn.Module):
 
     @torch.no_grad()
     def update(self, model: nn.Module) -> float:
+        self.decay = ema_decay(int(self.optimization_step), self.cfg)  # from the updates made before this one
         self.optimization_step += 1
-        self.decay = ema_decay(int(self.optimization_step), self.cfg)
         d = self.decay
         averaged, frozen = ([], []), ([], [])  # (ema, model) tensors, updated in one foreach call each
         for ema_p, p in zip(self.module.parameters(), model.parameters()):
