@@ -178,12 +178,15 @@ SCORE_VARIANTS: dict[str, dict] = {
 }
 
 
-def _check_env(exp, env: dict) -> None:
-    """``--env`` overrides checked against the env's config before any rollout: one line for an unknown key
+def _check_env(exp, env: dict, protocols) -> None:
+    """``--env`` overrides checked before any rollout, on top of each disturbance protocol's own overrides
+    (``displacement_chunk`` needs the displacement that ``ood_base`` turns on): one line for an unknown key
     (with the closest name) or a value the config refuses."""
-    from ddp.eval_runner import check_env_options
+    from ddp.eval_runner import env_overrides
+    from ddp.protocols.base import get_protocol
 
-    check_env_options(exp, env, source="--env")
+    for name in protocols:
+        env_overrides(exp, get_protocol(name), exp.recipe.eval.max_steps, extra=env)
 
 
 def _rollouts(exp, protocol: str, *, episodes: int, seed: int, env: dict, progress: bool, num_envs: int,
@@ -192,8 +195,7 @@ def _rollouts(exp, protocol: str, *, episodes: int, seed: int, env: dict, progre
     from ddp.protocols.base import get_protocol
 
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
-    over = env_overrides(exp, get_protocol(protocol), exp.recipe.eval.max_steps)
-    over.update(env)
+    over = env_overrides(exp, get_protocol(protocol), exp.recipe.eval.max_steps, extra=env)
     return rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=over, desc=f"{protocol} rollouts",
                             progress=progress, num_envs=num_envs, parallel=parallel, record_latents=True)
 
@@ -230,7 +232,7 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
     if not exp.model.has_world_model:
         raise ValueError(f"{exp.recipe.name}: detection needs a world model (world_model.enabled is false)")
     if env:
-        _check_env(exp, dict(env))
+        _check_env(exp, dict(env), disturbances)
     cfg = exp.recipe.eval
     seed = cfg.seed if seed is None else seed
     n_cal = calibration_episodes or cfg.calibration_episodes

@@ -21,11 +21,12 @@ from ddp.protocols.base import EvalProtocol
 from ddp.video import VideoSettings
 
 
-def check_env_options(exp, options: dict, *, source, key: str | None = None, needed_by: str | None = None) -> None:
-    """Every key of ``options`` is an option of the recipe's env config, and the config accepts the values:
-    else one line naming the env and the offending key (with the closest option name), or what the config
-    refused. ``needed_by`` words the error for options a protocol needs ("... does not support X needed by
-    ..."); otherwise an unknown key reads "has no option X"."""
+def check_env_options(exp, options: dict, *, source, key: str | None = None, needed_by: str | None = None,
+                      values: bool = True) -> None:
+    """Every key of ``options`` is an option of the recipe's env config and (``values``) the config accepts the
+    values: else one line naming the env and the offending key (with the closest option name), or what the
+    config refused. ``needed_by`` words the error for options a protocol needs ("... does not support X needed
+    by ..."); otherwise an unknown key reads "has no option X"."""
     env = exp.parts["env"]
     fields = {f.name for f in dataclasses.fields(env.config)}
     missing = sorted(set(options) - fields)
@@ -35,13 +36,20 @@ def check_env_options(exp, options: dict, *, source, key: str | None = None, nee
     if missing:
         raise RecipeError(f"env '{env.plugin.name}' has no option {missing[0]!r}{suggest(missing[0], fields)}",
                           source=source, key=key)
+    if not values:
+        return
     try:
         dataclasses.replace(env.config, **options)
     except (TypeError, ValueError) as err:
         raise RecipeError(str(err).splitlines()[0], source=source, key=key) from None
 
 
-def env_overrides(exp, protocol: EvalProtocol, max_steps: int | None) -> dict:
+def env_overrides(exp, protocol: EvalProtocol, max_steps: int | None, extra: dict | None = None,
+                  extra_source: str = "--env") -> dict:
+    """The env overrides a protocol runs with: ``eval.env``, the protocol's own, oracle tracking, occlusion and
+    the episode length, then ``extra`` on top (e.g. ``ddp detect --env``). Checked against the env's config
+    as a whole, so an extra option may complete the protocol's (a displacement chunk for its displacement);
+    a refused value is reported under ``extra_source`` when there are extras, else under ``eval.env``."""
     fields = {f.name for f in dataclasses.fields(exp.parts["env"].config)}
     over = dict(exp.recipe.eval.env)
     over.update(protocol.env)
@@ -52,7 +60,13 @@ def env_overrides(exp, protocol: EvalProtocol, max_steps: int | None) -> dict:
         over.update(occlusion_chunk=exp.recipe.eval.occlusion_chunk, occlusion_chunks=exp.recipe.eval.occlusion_chunks)
     if max_steps is not None:
         over["max_episode_steps"] = max_steps
-    check_env_options(exp, over, source=exp.source, key="env", needed_by="this protocol")
+    check_env_options(exp, over, source=exp.source, key="env", needed_by="this protocol", values=False)
+    if extra:
+        check_env_options(exp, extra, source=extra_source, values=False)
+        over.update(extra)
+        check_env_options(exp, over, source=extra_source)
+    else:
+        check_env_options(exp, over, source=exp.source, key="eval.env")
     return over
 
 

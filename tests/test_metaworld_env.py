@@ -403,3 +403,25 @@ def test_nonfinite_actions_and_shifts_are_refused(make_env):
     with pytest.raises(NonFiniteError, match="metaworld env: refused a non-finite end-effector shift"):
         env.shift_end_effector([float("inf"), 0.0, 0.0])
     _step(env, td, [0.0, 0.0, 0.0, 0.0])  # still usable
+
+
+def test_detect_env_options_are_checked_on_top_of_each_protocol():
+    """``ddp detect --env displacement_chunk=4`` completes ood_base's displacement (MetaWorld refuses a
+    displacement chunk without a displacement, so --env alone would not pass); under a protocol that does not
+    displace, the same option is refused in one line naming --env. A bad eval.env value names eval.env."""
+    from ddp import build
+    from ddp.detection import _check_env
+    from ddp.eval_runner import env_overrides
+    from ddp.protocols.base import get_protocol
+
+    exp = build("recipes/metaworld/quickstart_ddp.yaml")
+    _check_env(exp, {"displacement_chunk": 4}, ("ood_base",))
+    over = env_overrides(exp, get_protocol("ood_base"), 200, extra={"displacement_chunk": 4})
+    assert over["displacement"] is True and over["displacement_chunk"] == 4
+    with pytest.raises(RecipeError, match="--env: .*displacement is False"):
+        _check_env(exp, {"displacement_chunk": 4}, ("occlusion",))
+    with pytest.raises(RecipeError, match="--env: env 'metaworld' has no option 'displacment_chunk'"):
+        _check_env(exp, {"displacment_chunk": 4}, ("ood_base",))
+    exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.env={settle_steps: -1}"])
+    with pytest.raises(RecipeError, match="eval.env.*settle_steps must be >= 0"):
+        env_overrides(exp, get_protocol("id"), None)
