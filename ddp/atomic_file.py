@@ -21,6 +21,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO], None], *, binary
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes it 0600: give it the mode an open() would
         with os.fdopen(fd, "wb" if binary else "w") as f:
             write(f)
             f.flush()
@@ -32,6 +33,21 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO], None], *, binary
         raise
     _fsync_dir(path.parent)  # the rename itself survives a power loss once the folder's entry is on disk
     return path
+
+
+def _umask() -> int:
+    """The process's umask, read without changing it where Linux shows it (another thread may be creating
+    files); elsewhere by setting it and setting it straight back."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except OSError:
+        pass
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _fsync_dir(folder: Path) -> None:

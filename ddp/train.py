@@ -221,6 +221,10 @@ class Trainer:
         if micro % ranks.world:
             raise RecipeError(f"train.micro_batches ({micro}) must be a multiple of the number of processes "
                               f"({ranks.world})", source=exp.source, key="train.micro_batches")
+        if len(dataset) < micro:  # a micro-batch without a window would average an empty loss (NaN)
+            raise RecipeError(f"the training data hold {len(dataset)} windows, fewer than train.micro_batches "
+                              f"({micro}): use more episodes or fewer micro-batches", source=exp.source,
+                              key="train.micro_batches")
         mine = ranks.mine(micro)
         # one diffusion-noise stream per micro-batch (the first one is the single-batch run's)
         noises = {i: torch.Generator(device=self.device).manual_seed(exp.recipe.seed if i == 0 else

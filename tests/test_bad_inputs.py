@@ -117,6 +117,9 @@ CASES = [
     ("train-missing-data", lambda t, tr: ["train", write(t / "r.yaml", {**tiny(train={"output_dir": str(t / "o")}),
                                                                          "data": {"name": "episodes_dir", "path": str(t / "none")}})],
      "none does not exist"),
+    ("train-micro-batches-beyond-data", lambda t, tr: ["train", write(t / "r.yaml", tiny(
+        train={"batch_size": 512, "micro_batches": 512, "output_dir": str(t / "o")}, data={"episodes": 1}))],
+     "fewer than train.micro_batches (512)"),
     ("train-without-data", lambda t, tr: ["train", write(t / "r.yaml", {**tiny(train={"output_dir": str(t / "o")}), "data": None})],
      "data: this recipe has no data section"),
     ("resume-changed-lr", lambda t, tr: ["train", copy_run(tr, t)[0], "--set", "train.lr=0.003"],

@@ -57,6 +57,35 @@ def test_loading_episodes_never_unpickles(tmp_path):
     assert Episodes.load(tmp_path / "demos").num_episodes == 3
 
 
+def test_damaged_episode_directories_are_one_line_errors(tmp_path):
+    """A damaged meta.json, a pickled or missing episode_ends.pt, or boundaries that do not match the steps:
+    each a one-line DDPError naming the file (they were tracebacks)."""
+    import pytest
+
+    from ddp.errors import DDPError
+
+    def fresh(name):
+        return _episodes().save(tmp_path / name)
+
+    d = fresh("json")
+    (d / "meta.json").write_text("{not json")
+    with pytest.raises(DDPError, match=r"meta.json: not valid JSON"):
+        Episodes.load(d)
+    d = fresh("pickled")
+    torch.save({"ends": _Payload()}, d / "episode_ends.pt")
+    with pytest.raises(DDPError, match=r"episode_ends.pt: not a tensor file this loader reads \(refused") as err:
+        Episodes.load(d)
+    assert "\n" not in str(err.value)
+    d = fresh("missing")
+    (d / "episode_ends.pt").unlink()
+    with pytest.raises(DDPError, match=r"episode_ends.pt: missing"):
+        Episodes.load(d)
+    d = fresh("mismatch")
+    torch.save(torch.tensor([6, 15, 21]), d / "episode_ends.pt")
+    with pytest.raises(DDPError, match=r"mismatch: episode_ends must .* against the 22 stored steps"):
+        Episodes.load(d)
+
+
 def test_sequence_dataset_batches_match_items():
     ds = SequenceDataset(_episodes(), 5, pad_before=1, pad_after=3)
     b = ds.batch(torch.tensor([0, 4, len(ds) - 1]))

@@ -134,6 +134,18 @@ def test_inconsistent_lengths_are_reported(demos, tmp_path):
         read_dp3_zarr(path)
 
 
+def test_non_numeric_arrays_are_refused_before_reading(demos, tmp_path):
+    """zarr 2 decodes an object array by unpickling it: a DP3 zarr someone sent must not run code, so any
+    array that is not numbers is refused, by name, before it is read."""
+    path = export_dp3_zarr(demos, tmp_path / "odd.zarr")
+    root = zarr.open(str(path), mode="r+")
+    steps = root["data/action"].shape[0]
+    del root["data/action"]
+    root.create_array("data/action", shape=(steps,), dtype="<U4")
+    with pytest.raises(DDPError, match=r"odd.zarr: data/action has dtype <U4; only numeric arrays are read"):
+        read_dp3_zarr(path)
+
+
 def test_clouds_are_sampled_to_the_recipes_point_count(dp3_dir, demos):
     # data.num_points: null samples to task.num_points (FPS), as the model is built for
     eps = _source({"name": "dp3_zarr", "path": str(dp3_dir)}, task={"num_points": 20}).load()

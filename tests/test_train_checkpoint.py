@@ -190,6 +190,20 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
     assert synced == [False, True] and load_checkpoint(path)["step"] == 3
 
 
+def test_atomic_files_get_the_mode_an_open_would_give(tmp_path):
+    """mkstemp makes its temp file 0600; a checkpoint, calibration or suite result must not stay unreadable
+    to the group (a shared results folder) where the umask allows it."""
+    old = os.umask(0o022)
+    try:
+        path = save_checkpoint(tmp_path / "c.pt", {"step": 1})
+        assert os.stat(path).st_mode & 0o777 == 0o644
+        os.umask(0o077)
+        path = save_checkpoint(tmp_path / "d.pt", {"step": 1})
+        assert os.stat(path).st_mode & 0o777 == 0o600
+    finally:
+        os.umask(old)
+
+
 def test_weights_of_another_recipe_are_refused(tiny_recipe, tmp_path):
     exp = build(tiny_recipe)
     exp.train(output_dir=tmp_path, progress=False)

@@ -74,13 +74,29 @@ class Episodes:
         meta_file = path / "meta.json"
         if not meta_file.exists():
             raise DDPError(f"{path}: not a ddp episode directory (no meta.json)")
-        meta = json.loads(meta_file.read_text())
-        if meta.get("format") != FORMAT:
+        try:
+            meta = json.loads(meta_file.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise DDPError(f"{meta_file}: not valid JSON ({err})") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            meta = meta if isinstance(meta, dict) else {}
             raise DDPError(f"{path}: meta.json format is {meta.get('format')!r}, expected {FORMAT!r}")
         try:  # tensors only: a pickled leaf (tensordict's other.pickle) would run code when loaded
             steps = TensorDict.load_memmap(path / "steps", allow_pickle=False)
         except RuntimeError as err:
             raise DDPError(f"{path}: the episode data holds something other than tensors (refused: loading "
                            f"it could run code): {str(err).splitlines()[0]}") from None
-        ends = torch.load(path / "episode_ends.pt", weights_only=True)
-        return cls(steps, ends)
+        ends_file = path / "episode_ends.pt"
+        if not ends_file.exists():
+            raise DDPError(f"{ends_file}: missing (the episode boundaries)")
+        try:
+            ends = torch.load(ends_file, weights_only=True)
+        except Exception as err:  # a pickled object or a damaged file: torch's several-line message, first line
+            raise DDPError(f"{ends_file}: not a tensor file this loader reads (refused: "
+                           f"{str(err).strip().splitlines()[0]})") from None
+        if not isinstance(ends, torch.Tensor):
+            raise DDPError(f"{ends_file}: holds a {type(ends).__name__}, expected a tensor of episode ends")
+        try:
+            return cls(steps, ends)
+        except ValueError as err:
+            raise DDPError(f"{path}: {err} (episode_ends.pt against the {steps.batch_size[0]} stored steps)") from None

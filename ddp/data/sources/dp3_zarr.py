@@ -122,12 +122,19 @@ def read_dp3_zarr(
 
     def array(name: str):
         try:
-            return root[name]
+            arr = root[name]
         except KeyError:
             found = sorted(_list_arrays(root))
             raise DDPError(
                 f"{path}: no array '{name}' in the zarr store (found: {', '.join(found) or 'nothing'})"
             ) from None
+        try:
+            kind = np.dtype(arr.dtype).kind
+        except TypeError:
+            kind = "O"
+        if kind not in "biuf":  # checked before reading: zarr 2 decodes an object array with pickle
+            raise DDPError(f"{path}: {name} has dtype {arr.dtype}; only numeric arrays are read")
+        return arr
 
     ends = np.asarray(array(EPISODE_ENDS)[:], dtype=np.int64).reshape(-1)
     if ends.size == 0:
