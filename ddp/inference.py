@@ -55,6 +55,7 @@ from tensordict import TensorDictBase
 
 from ddp.contracts import check as check_contract
 from ddp.detectors.scores import ScoreSpec, residual_score
+from ddp.errors import RecipeError
 from ddp.keys import KeyedModule
 from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite
 
@@ -235,8 +236,9 @@ class DDPController(KeyedModule):
         return bool(s.recovered.any()) and not self._targets_to_recover(s)
 
     def _targets_to_recover(self, s: EnvState) -> list[int]:
-        """The displaced objects that some subtask targets and that are not recovered yet."""
-        targets = {sub.target for sub in self.subtasks if sub.target is not None}
+        """The displaced objects that the current or a later subtask targets and that are not recovered yet
+        (an ended subtask's recovery is past: its target will not be brought back)."""
+        targets = {sub.target for sub in self.subtasks[s.subtask:] if sub.target is not None}
         return [k for k in targets if k < len(s.displaced) and bool(s.displaced[k]) and not bool(s.recovered[k])]
 
     def _left_to_recover(self, s: EnvState) -> bool:
@@ -293,7 +295,14 @@ class DDPController(KeyedModule):
         applied = td.get(self.key("ee_shift_applied"), None)
         for b, s in enumerate(self.states):
             if applied is not None and s.last_track is not None and s.last_shift is not None:
-                s.followed[s.last_track] = s.followed[s.last_track] + applied[b].float().cpu() - s.last_shift
+                done = applied[b].float().cpu().reshape(-1)
+                if done.shape == (3,) and bool(torch.isfinite(done).all()):
+                    s.followed[s.last_track] = s.followed[s.last_track] + done - s.last_shift
+                else:  # an env reporting NaN / inf: its shift must not reach a recovery (nor a robot)
+                    import warnings
+
+                    warnings.warn(f"controller: env {b} reported ee_shift_applied {done.tolist()}; the requested "
+                                  f"shift counts as executed", RuntimeWarning, stacklevel=3)
             s.last_track = s.last_shift = None
 
     def _subtask_ended(self, s: EnvState, obs, chunk: int) -> bool:
@@ -461,6 +470,11 @@ class DDPController(KeyedModule):
         if offsets is not None:  # an offset the tracker could not measure is no displacement
             offsets = torch.nan_to_num(offsets.cpu(), nan=0.0, posinf=0.0, neginf=0.0)
         num_objects = offsets.shape[-2] if offsets is not None else 0
+        if offsets is not None:
+            for j, sub in enumerate(self.subtasks):
+                if sub.target is not None and not 0 <= sub.target < num_objects:
+                    raise RecipeError(f"target {sub.target} is not one of the {num_objects} object(s) the tracker "
+                                      f"follows (0..{num_objects - 1})", key=f"controller.subtasks[{j}].target")
         for s in self.states:
             if s.recovered is None:
                 s.recovered = torch.zeros(num_objects, dtype=torch.bool)
@@ -502,10 +516,14 @@ class DDPController(KeyedModule):
                     s.offsets = offsets[b]
                     s.displaced = (offsets[b].norm(dim=-1) > MIN_OFFSET) & ~s.recovered
                     self._track(s, b, ee_shift, offsets[b])  # a^track_j = Delta p_Cj
-                if s.displaced is None or not bool(s.displaced.any()):
-                    s.recheck_after = chunk_index[b]  # nothing to track or recover: re-check D_R-I next cycle
+                if s.displaced is None or not self._left_to_recover(s):
+                    # nothing displaced that a subtask still to come tracks or recovers (scenery, or the target
+                    # of a subtask that already ended): re-check D_R-I next cycle
+                    s.recheck_after = chunk_index[b]
             elif s.ood and not self.detector.sticky:
-                s.ood = bool(ood_now[b])  # re-decided every cycle (substitution, simulator oracle)
+                # re-decided every cycle (substitution, simulator oracle), but not while a tracking shift waits
+                # for the recovery that undoes it
+                s.ood = bool(ood_now[b]) or self._awaits_recovery(s)
             elif s.ood and s.recheck_after is not None and chunk_index[b] > s.recheck_after and finite[b]:
                 s.recheck_after = None
                 if self._awaits_recovery(s):
@@ -525,11 +543,14 @@ class DDPController(KeyedModule):
         for b, s in enumerate(self.states):
             if not (s.ood and offsets is not None and s.displaced is not None):
                 continue
-            seen = (offsets[b].norm(dim=-1) > MIN_OFFSET) & ~s.displaced & ~s.recovered
+            visible = offsets[b].norm(dim=-1) > MIN_OFFSET
+            seen = visible & ~s.displaced & ~s.recovered
             if bool(seen.any()):
                 s.offsets = torch.where(seen[:, None], offsets[b], s.offsets)
                 s.displaced |= seen
-            self._track(s, b, ee_shift, s.offsets)
+            # a^track = p_Cj - p_Cj^exp when it executes: the offset seen now, or the last one known for an
+            # object the tracker cannot see now (hidden, carried)
+            self._track(s, b, ee_shift, torch.where(visible[:, None], offsets[b], s.offsets))
 
         # O_curr: real latents in ID, imagined ones in OOD (Enter Imagination)
         imagined = [self.imagine and s.ood and s.has_forecast for s in self.states]

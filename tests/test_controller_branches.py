@@ -484,3 +484,88 @@ def test_ood_base_displaces_but_never_detects_nor_shifts(tiny_recipe):
     ctrl, r = protocol_rollout(exp, "ood_ddp")
     assert torch.allclose(r["next", "privileged", "displacement"][1:, 0], torch.tensor(DELTA).expand(CHUNKS - 1, 3))
     assert r["ddp", "mode"][2] == 1 and shifts(r)[2] == DELTA
+
+
+# --------------------------------------------------------------------------- review fixes (2026-12-04)
+class PerChunkTracker(torch.nn.Module):
+    """One object whose offset is scripted per chunk index (``{chunk: [dx, dy, dz]}``, zero elsewhere)."""
+
+    def __init__(self, script):
+        super().__init__()
+        self.script = script
+
+    def key(self, role):
+        return ("ddp", role)
+
+    def forward(self, td):
+        chunk = td.get("chunk_index").reshape(-1).tolist()
+        td.set(("ddp", "offsets"), torch.tensor([[self.script.get(c, [0.0, 0.0, 0.0])] for c in chunk]))
+        return td
+
+    def reset(self):
+        pass
+
+
+def test_a_later_subtasks_target_is_tracked_with_its_offset_when_the_shift_executes(tiny_recipe):
+    """OOD begins while a subtask without a target runs; the object moves on before its own subtask begins:
+    a^track is the offset seen when that subtask's shift executes, not the one seen when OOD began."""
+    exp = make_exp(tiny_recipe, subtasks=[{"target": None, "trigger": {"name": "chunk_index", "chunk": 3}},
+                                          {"target": 0, "trigger": {"name": "chunk_index", "chunk": 6}},
+                                          {"target": None}])
+    ctrl = exp.make_controller()
+    ctrl.tracker = PerChunkTracker({2: [0.1, 0.0, 0.0], 3: [0.2, 0.0, 0.0], 4: [0.2, 0.0, 0.0]})
+    ctrl.detector = ScriptedStickyDetector(ood_at={2})
+    r = rollout(exp, ctrl)
+    assert r["ddp", "mode"].tolist()[2] == 1 and shifts(r)[2] == [0.0, 0.0, 0.0]  # no target yet: no shift
+    assert shifts(r)[3] == [0.2, 0.0, 0.0]
+
+
+def test_a_flag_after_the_targets_subtask_ended_is_rechecked(tiny_recipe):
+    """The cube's subtask ended (chunk 2) before D_R-I flagged its move (chunk 3): no subtask will track or
+    recover it, so the alarm is re-checked as one with nothing displaced is (recheck_until_id: back to reality
+    at the first ID verdict) instead of imagining to the episode's end."""
+    exp = make_exp(tiny_recipe, recheck_until_id=True,
+                   subtasks=[{"target": 0, "trigger": {"name": "chunk_index", "chunk": 2}}, {"target": None}])
+    ctrl = exp.make_controller()
+    ctrl.detector = ScriptedStickyDetector(ood_at={3, 4})
+    r = rollout(exp, ctrl)
+    assert r["ddp", "mode"].tolist() == [0, 0, 0, 1, 1, 0, 0, 0]
+    assert not any(any(row) for row in shifts(r))
+
+
+def test_a_non_sticky_detector_keeps_ood_until_the_tracked_target_is_recovered(tiny_recipe):
+    """A non-sticky detector that stops reading OOD right after the tracking shift does not end OOD mode
+    before the recovery that undoes the shift: the end-effector ends where it started."""
+    exp = make_exp(tiny_recipe)
+    ctrl = exp.make_controller()
+    ctrl.detector = ScriptedStickyDetector(ood_at={2})
+    ctrl.detector.sticky = False
+    r = rollout(exp, ctrl)
+    assert shifts(r)[2] == DELTA and shifts(r)[4] == [-d for d in DELTA]
+    assert r["ddp", "mode"].tolist()[2:4] == [1, 1]
+    assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
+
+
+def test_a_non_finite_applied_shift_never_reaches_the_recovery(tiny_recipe):
+    """An env reporting ee_shift_applied NaN: the requested shift counts as executed (with a warning), and
+    the recovery shift the controller emits is finite."""
+    exp = make_exp(tiny_recipe)
+    env = make_chunked_env(exp, seed=0)
+
+    def broken(delta, safe_lift=0.0):
+        env.base.ee = env.base.ee + np.asarray(delta)
+        env.base.ee_offset = env.base.ee_offset + np.asarray(delta)
+        return np.array([np.nan, 0.0, 0.0])
+
+    env.base.shift_end_effector = broken
+    with pytest.warns(RuntimeWarning, match="ee_shift_applied"):
+        r = rollout(exp, exp.make_controller(), env=env)
+    assert torch.isfinite(r["ee_shift"]).all() and shifts(r)[4] == [-d for d in DELTA]
+
+
+def test_a_subtask_target_beyond_the_trackers_objects_is_one_line(tiny_recipe):
+    from ddp.errors import RecipeError
+
+    exp = make_exp(tiny_recipe, subtasks=[{"target": 3, "trigger": {"name": "chunk_index", "chunk": 4}}])
+    with pytest.raises(RecipeError, match=r"controller.subtasks\[0\].target: target 3 is not one of the 1 object"):
+        rollout(exp, exp.make_controller())
