@@ -8,12 +8,15 @@
   a kill interrupted (``.last.pt.*.tmp``); only called under the lock.
 * :func:`trim_csv_logs` drops CSV log rows past the step a run resumes from, so
   that the steps a killed run logged after its last checkpoint are not repeated.
+* :func:`set_aside_previous_run` moves an earlier run's checkpoint and logs to
+  ``previous/<time>/`` when a run starts over (``--no-resume``) in its directory.
 """
 
 from __future__ import annotations
 
 import fcntl
 import os
+import time
 from pathlib import Path
 
 from ddp.errors import DDPError
@@ -92,3 +95,28 @@ def trim_csv_logs(directory: str | os.PathLike, step: int) -> int:
             tmp.write_text("".join(kept))
             os.replace(tmp, csv)
     return dropped
+
+
+LOGS_DIR = "logs"  # the trainer's logger writes under <output_dir>/logs
+
+
+def set_aside_previous_run(directory: str | os.PathLike, checkpoint_name: str) -> Path | None:
+    """A run starting over in a used directory (``--no-resume``): the earlier run's checkpoint, the files
+    named after it (``last.calibration.json``) and its logs move to ``previous/<UTC time>/``. Nothing is
+    deleted, a later plain ``ddp train`` cannot resume the earlier run should the new one be killed before
+    its first checkpoint, and the new logs do not continue the old ones. Returns that folder, or None when
+    there was nothing to move. Only called under the directory's lock."""
+    directory = Path(directory)
+    stem = Path(checkpoint_name).stem
+    moved = [p for p in directory.glob(f"{stem}.*") if p.is_file()]
+    if (directory / LOGS_DIR).is_dir():
+        moved.append(directory / LOGS_DIR)
+    if not moved:
+        return None
+    target = directory / "previous" / time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    while target.exists():  # two fresh starts within a second
+        target = target.with_name(target.name + "+")
+    target.mkdir(parents=True)
+    for path in moved:
+        os.replace(path, target / path.name)
+    return target

@@ -12,6 +12,7 @@ import contextlib
 import math
 import signal
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +27,7 @@ from ddp.models.ddp_policy import FRAME_INDEX
 from ddp.models.ema import EMA
 from ddp.preemption import interruption, signals_deferred, stop_requests, stop_signals
 from ddp.recipe import recipe_changes
-from ddp.run_dir import RunLock, remove_leftovers, trim_csv_logs
+from ddp.run_dir import LOGS_DIR, RunLock, remove_leftovers, set_aside_previous_run, trim_csv_logs
 
 LAST = "last.pt"
 
@@ -204,6 +205,11 @@ class Trainer:
             keys=["point_cloud", "agent_pos", "action"],
         )
         ckpt_path = self.output_dir / LAST
+        if not resume and self.ranks.main:
+            aside = set_aside_previous_run(self.output_dir, LAST)
+            if aside is not None:
+                warnings.warn(f"starting over in {self.output_dir}: the earlier run's checkpoint and logs moved to "
+                              f"{aside}", UserWarning, stacklevel=3)
         state = load_checkpoint(ckpt_path) if resume and ckpt_path.exists() else None
         if state is not None:
             check_resumable(ckpt_path, state, exp.resolved)
@@ -244,6 +250,8 @@ class Trainer:
                 table_step = int(state["target_table_step"])
             if cfg.logger == "csv" and ranks.main:
                 trim_csv_logs(self.output_dir, step)  # rows a killed run logged after its last checkpoint
+        elif cfg.logger == "csv" and ranks.main and (self.output_dir / LOGS_DIR).is_dir():
+            trim_csv_logs(self.output_dir, -1)  # rows of a run killed before its first checkpoint
         same_start(ranks, (step, epoch, batch_in_epoch), self.output_dir)
         logger = self._logger() if ranks.main else None
         loss_fn = torch.compile(model.loss) if cfg.compile else model.loss
@@ -373,7 +381,6 @@ class Trainer:
                 if saved_step != step and not updating and (agreed_stop or not ranks.enabled):
                     checkpoint(raise_deferred=False)
                 elif updating and ranks.main:
-                    import warnings
 
                     warnings.warn(f"training interrupted in the middle of step {step + 1}'s update: not saved; "
                                   f"{ckpt_path} holds step {max(saved_step, 0)}", RuntimeWarning, stacklevel=2)
@@ -414,7 +421,6 @@ class Trainer:
                 for i, gen in noises.items():
                     gen.set_state(saved[i])
             except RuntimeError:  # saved on another device (train.device may change on resume)
-                import warnings
 
                 for i, gen in noises.items():
                     gen.manual_seed(exp.recipe.seed * 1_000_003 + int(state["step"]) + 7919 * i)

@@ -90,6 +90,29 @@ def test_csv_logs_do_not_repeat_steps_after_resume(tmp_path):
     assert steps_logged(run) == [5, 10, 15, 20]
 
 
+def test_starting_over_sets_the_earlier_run_aside(tmp_path):
+    """--no-resume in a used directory: the earlier checkpoint and logs move to previous/<time>/ (nothing
+    deleted; a plain ddp train cannot resume the earlier run if the new one dies before its first checkpoint),
+    and the new run's log starts at its own steps."""
+    r = tiny(tmp_path, max_steps=10)
+    build(r).train(progress=False)
+    run = tmp_path / "run"
+    with pytest.warns(UserWarning, match="the earlier run's checkpoint and logs moved to"):
+        build(r).train(progress=False, resume=False)
+    (aside,) = (run / "previous").iterdir()
+    assert load_checkpoint(aside / "last.pt")["step"] == 10 and steps_logged(aside) == [5, 10]
+    assert steps_logged(run) == [5, 10] and load_checkpoint(run / "last.pt")["step"] == 10
+
+
+def test_a_run_killed_before_its_first_checkpoint_leaves_no_rows_behind(tmp_path):
+    r = tiny(tmp_path, max_steps=10)
+    run = tmp_path / "run"
+    (run / "logs" / "scalars").mkdir(parents=True)
+    (run / "logs" / "scalars" / "loss.csv").write_text("5,0.9\n")  # logged, then killed: no last.pt
+    build(r).train(progress=False)
+    assert steps_logged(run) == [5, 10]
+
+
 def test_second_ctrl_c_during_the_save_cannot_break_it(tmp_path, monkeypatch):
     import ddp.train as train_mod
 
