@@ -76,7 +76,12 @@ class Experiment:
         return self._episodes
 
     def train(self, output_dir: str | os.PathLike | None = None, resume: bool = True, progress: bool = True):
-        """Train with the recipe's ``train`` section; see :class:`ddp.train.Trainer`."""
+        """Train with the recipe's ``train`` section; see :class:`ddp.train.Trainer`.
+
+        Without a checkpoint to resume, training starts from ``model``'s current weights: the seed's
+        initialisation after ``build``, or weights loaded with :meth:`load_checkpoint` (fine-tuning). A second
+        ``train(resume=False)`` on the same experiment therefore continues from the trained weights; ``build``
+        the recipe again for a fresh start."""
         from ddp.train import Trainer
 
         return Trainer(self, output_dir=output_dir, progress=progress).fit(resume=resume)
