@@ -386,10 +386,14 @@ class Trainer:
                                   f"{ckpt_path} holds step {max(saved_step, 0)}", RuntimeWarning, stacklevel=2)
             raise
         else:
-            bar.close()
-            if count:  # the steps since the last log line: a collective on every rank, before the save records it
-                last_means = window_means()
-            path = checkpoint()
+            # the run is done: a stop asked for from here on waits until the final checkpoint is written
+            with signals_deferred(requested):
+                bar.close()
+                if count:  # the steps since the last log line: a collective on every rank, before the save
+                    last_means = window_means()
+                path = checkpoint(raise_deferred=False)
+            if requested:
+                raise interruption(requested[0])
         finally:  # the target table is saved with each checkpoint (a resume reloads it), never kept on the model
             model.target_table = None
         seconds = time.perf_counter() - t0

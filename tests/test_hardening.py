@@ -150,6 +150,28 @@ def test_preempted_crosses_a_process_boundary():
     assert isinstance(back, Preempted) and back.signum == signal.SIGHUP and str(back) == "stopped by SIGHUP"
 
 
+def test_a_stop_after_the_last_step_still_writes_the_final_checkpoint(tmp_path, monkeypatch):
+    """A SIGTERM that lands after the last optimiser step, before the final save (here while the progress bar
+    closes), waits for the save: the run is stopped with every step kept (it exited without a checkpoint)."""
+    import ddp.train as train_mod
+    from ddp.preemption import Preempted
+
+    real_tqdm = train_mod.tqdm
+
+    class Bar(real_tqdm):
+        def close(self):
+            if not getattr(self, "_sent", False):  # the bar closes once, after the last step
+                self._sent = True
+                os.kill(os.getpid(), signal.SIGTERM)
+            return super().close()
+
+    monkeypatch.setattr(train_mod, "tqdm", Bar)
+    exp = build(tiny(tmp_path, max_steps=10))
+    with pytest.raises(Preempted):
+        exp.train(progress=False)
+    assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 10
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
 def test_preemption_signal_saves_and_resumes(tmp_path, sig):
     r = tiny(tmp_path, max_steps=100_000, log_every_steps=1)
