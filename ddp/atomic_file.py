@@ -21,7 +21,10 @@ def atomic_write(path: str | os.PathLike, write: Callable[[IO], None], *, binary
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes it 0600: give it the mode an open() would
+        try:  # mkstemp makes it 0600: give it the mode an open() would
+            os.fchmod(fd, 0o666 & ~_umask())
+        except OSError:  # a filesystem that refuses (e.g. NFS with squashed owners): the write still goes on
+            pass
         with os.fdopen(fd, "wb" if binary else "w") as f:
             write(f)
             f.flush()

@@ -22,6 +22,7 @@ from pathlib import Path
 from ddp.errors import DDPError
 
 LOCK_FILE = ".lock"
+LOGS_DIR = "logs"  # the trainer's logger writes under <output_dir>/logs
 
 
 class RunDirBusy(DDPError):
@@ -81,7 +82,7 @@ def trim_csv_logs(directory: str | os.PathLike, step: int) -> int:
     Returns the number of rows dropped. Rows that do not start with an integer step are kept.
     """
     dropped = 0
-    for csv in Path(directory).glob("**/scalars/*.csv"):
+    for csv in (Path(directory) / LOGS_DIR).glob("**/scalars/*.csv"):  # not previous/: earlier runs' logs
         kept = []
         lines = csv.read_text().splitlines(keepends=True)
         for line in lines:
@@ -95,9 +96,6 @@ def trim_csv_logs(directory: str | os.PathLike, step: int) -> int:
             tmp.write_text("".join(kept))
             os.replace(tmp, csv)
     return dropped
-
-
-LOGS_DIR = "logs"  # the trainer's logger writes under <output_dir>/logs
 
 
 def set_aside_previous_run(directory: str | os.PathLike, checkpoint_name: str) -> Path | None:

@@ -76,6 +76,15 @@ def test_damaged_episode_directories_are_one_line_errors(tmp_path):
     with pytest.raises(DDPError, match=r"episode_ends.pt: not a tensor file this loader reads \(refused") as err:
         Episodes.load(d)
     assert "\n" not in str(err.value)
+    d = fresh("empty")
+    (d / "episode_ends.pt").write_bytes(b"")  # a save killed mid-write
+    with pytest.raises(DDPError, match=r"episode_ends.pt: not a tensor file this loader reads"):
+        Episodes.load(d)
+    for name, bad in (("twod", torch.tensor([[6, 15, 22]])), ("float", torch.tensor([6.0, 15.0, 22.0]))):
+        d = fresh(name)
+        torch.save(bad, d / "episode_ends.pt")
+        with pytest.raises(DDPError, match=r"episode_ends.pt: holds a .* expected a 1-D integer tensor"):
+            Episodes.load(d)
     d = fresh("missing")
     (d / "episode_ends.pt").unlink()
     with pytest.raises(DDPError, match=r"episode_ends.pt: missing"):

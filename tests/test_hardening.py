@@ -102,6 +102,13 @@ def test_starting_over_sets_the_earlier_run_aside(tmp_path):
     (aside,) = (run / "previous").iterdir()
     assert load_checkpoint(aside / "last.pt")["step"] == 10 and steps_logged(aside) == [5, 10]
     assert steps_logged(run) == [5, 10] and load_checkpoint(run / "last.pt")["step"] == 10
+    # a shorter run started over, then resumed: trimming its log past step 5 leaves previous/ as it was
+    r["train"]["max_steps"] = 5
+    with pytest.warns(UserWarning, match="moved to"):
+        build(r).train(progress=False, resume=False)
+    build(r).train(progress=False)
+    assert steps_logged(run) == [5] and all(steps_logged(p) == [5, 10] for p in (run / "previous").iterdir()
+                                            if (p / "logs").is_dir() and p.name == aside.name)
 
 
 def test_a_run_killed_before_its_first_checkpoint_leaves_no_rows_behind(tmp_path):

@@ -92,10 +92,12 @@ class Episodes:
         try:
             ends = torch.load(ends_file, weights_only=True)
         except Exception as err:  # a pickled object or a damaged file: torch's several-line message, first line
-            raise DDPError(f"{ends_file}: not a tensor file this loader reads (refused: "
-                           f"{str(err).strip().splitlines()[0]})") from None
-        if not isinstance(ends, torch.Tensor):
-            raise DDPError(f"{ends_file}: holds a {type(ends).__name__}, expected a tensor of episode ends")
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            raise DDPError(f"{ends_file}: not a tensor file this loader reads (refused: {first})") from None
+        if not isinstance(ends, torch.Tensor) or ends.dim() != 1 or ends.is_floating_point() or ends.is_complex():
+            what = type(ends).__name__ if not isinstance(ends, torch.Tensor) else f"{ends.dtype} tensor of shape " \
+                f"{tuple(ends.shape)}"
+            raise DDPError(f"{ends_file}: holds a {what}, expected a 1-D integer tensor of episode ends")
         try:
             return cls(steps, ends)
         except ValueError as err:
