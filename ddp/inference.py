@@ -229,8 +229,9 @@ class DDPController(KeyedModule):
         return self.subtasks[s.subtask].trigger if s.subtask < len(self.subtasks) else None
 
     def _targets_recovered(self, s: EnvState) -> bool:
-        """Every displaced object that some subtask targets has been recovered (displaced objects no subtask
-        targets, e.g. coffee-pull's machine, are scenery the policy may see where they now are)."""
+        """Something was recovered and every displaced object that the current or a later subtask targets has
+        been (displaced objects no such subtask targets, e.g. coffee-pull's machine, are scenery the policy may
+        see where they now are)."""
         if s.displaced is None or s.recovered is None:
             return False
         return bool(s.recovered.any()) and not self._targets_to_recover(s)
@@ -242,8 +243,9 @@ class DDPController(KeyedModule):
         return [k for k in targets if k < len(s.displaced) and bool(s.displaced[k]) and not bool(s.recovered[k])]
 
     def _left_to_recover(self, s: EnvState) -> bool:
-        """A displaced object that some subtask targets is not recovered yet (its recovery is to come);
-        displaced objects no subtask targets are scenery that no recovery will bring back."""
+        """A displaced object that the current or a later subtask targets is not recovered yet (its recovery is
+        to come); other displaced objects are scenery, or an ended subtask's target, that no recovery will
+        bring back."""
         if s.displaced is None or s.recovered is None:
             return False
         return bool(self._targets_to_recover(s))

@@ -381,7 +381,6 @@ class Trainer:
                 if saved_step != step and not updating and (agreed_stop or not ranks.enabled):
                     checkpoint(raise_deferred=False)
                 elif updating and ranks.main:
-
                     warnings.warn(f"training interrupted in the middle of step {step + 1}'s update: not saved; "
                                   f"{ckpt_path} holds step {max(saved_step, 0)}", RuntimeWarning, stacklevel=2)
             raise
@@ -425,7 +424,6 @@ class Trainer:
                 for i, gen in noises.items():
                     gen.set_state(saved[i])
             except RuntimeError:  # saved on another device (train.device may change on resume)
-
                 for i, gen in noises.items():
                     gen.manual_seed(exp.recipe.seed * 1_000_003 + int(state["step"]) + 7919 * i)
                 warnings.warn(f"{ckpt_path}: the diffusion-noise generator was saved on another device; "

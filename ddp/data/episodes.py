@@ -78,9 +78,9 @@ class Episodes:
             meta = json.loads(meta_file.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise DDPError(f"{meta_file}: not valid JSON ({err})") from None
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-            meta = meta if isinstance(meta, dict) else {}
-            raise DDPError(f"{path}: meta.json format is {meta.get('format')!r}, expected {FORMAT!r}")
+        found = meta.get("format") if isinstance(meta, dict) else None
+        if found != FORMAT:
+            raise DDPError(f"{path}: meta.json format is {found!r}, expected {FORMAT!r}")
         try:  # tensors only: a pickled leaf (tensordict's other.pickle) would run code when loaded
             steps = TensorDict.load_memmap(path / "steps", allow_pickle=False)
         except RuntimeError as err:
@@ -94,10 +94,11 @@ class Episodes:
         except Exception as err:  # a pickled object or a damaged file: torch's several-line message, first line
             first = (str(err).strip().splitlines() or [type(err).__name__])[0]
             raise DDPError(f"{ends_file}: not a tensor file this loader reads (refused: {first})") from None
-        if not isinstance(ends, torch.Tensor) or ends.dim() != 1 or ends.is_floating_point() or ends.is_complex():
-            what = type(ends).__name__ if not isinstance(ends, torch.Tensor) else f"{ends.dtype} tensor of shape " \
-                f"{tuple(ends.shape)}"
-            raise DDPError(f"{ends_file}: holds a {what}, expected a 1-D integer tensor of episode ends")
+        if not isinstance(ends, torch.Tensor):
+            raise DDPError(f"{ends_file}: holds a {type(ends).__name__}, expected a 1-D integer tensor of episode ends")
+        if ends.dim() != 1 or ends.is_floating_point() or ends.is_complex():
+            raise DDPError(f"{ends_file}: holds a {ends.dtype} tensor of shape {tuple(ends.shape)}, expected a 1-D "
+                           f"integer tensor of episode ends")
         try:
             return cls(steps, ends)
         except ValueError as err:
