@@ -24,9 +24,18 @@ VERSION = 1
 
 
 def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
-    """Write ``payload`` to ``path`` atomically (temp file in the same folder, fsync, rename)."""
+    """Write ``payload`` to ``path`` atomically (temp file in the same folder, fsync, rename); a write the
+    system refuses (disk full, no permission, a file where the folder should be) is a one-line
+    :class:`CheckpointError`, and the file at ``path`` stays as it was."""
     data = {"format": FORMAT, "version": VERSION, **payload}
-    return atomic_write(path, lambda f: torch.save(data, f))
+    try:
+        return atomic_write(path, lambda f: torch.save(data, f))
+    except OSError as err:
+        raise CheckpointError(f"{path}: cannot write the checkpoint: {err.strerror or err}") from None
+    except RuntimeError as err:  # torch.save reports a failed write of its zip stream as RuntimeError
+        if "write" not in str(err).lower():
+            raise
+        raise CheckpointError(f"{path}: cannot write the checkpoint: {str(err).splitlines()[0]}") from None
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu", *,

@@ -291,8 +291,12 @@ class Trainer:
             streams = {i: g for part in ranks.gather({i: boundary_noise[i].cpu() for i in mine})
                        for i, g in part.items()}
             if not ranks.main:
+                # rank 0 is writing; it says whether the write failed (a collective), so that a failed write
+                # ends every rank with one line instead of leaving the others in the next collective
+                if ranks.any(False, self.device):
+                    raise CheckpointError(f"{ckpt_path}: rank 0 could not write the checkpoint (its error says "
+                                          f"why); rank {ranks.rank} stops too")
                 saved_step = step
-                ranks.barrier()  # rank 0 is writing
                 return ckpt_path
             payload = {
                 "model": model.state_dict(),
@@ -313,9 +317,13 @@ class Trainer:
                 payload["target_table_step"] = table_step
             # no signal lands in the middle of the write: a second Ctrl-C is noted and acted on after it
             with signals_deferred() as received:
-                path = save_checkpoint(ckpt_path, payload)
+                try:
+                    path = save_checkpoint(ckpt_path, payload)
+                except BaseException:
+                    ranks.any(True, self.device)  # the other ranks wait for this write: they stop too
+                    raise
                 saved_step = step
-            ranks.barrier()
+            ranks.any(False, self.device)  # written: the other ranks go on
             if received and raise_deferred:
                 raise interruption(received[0])
             requested.extend(received)

@@ -134,6 +134,34 @@ def test_a_sigterm_to_one_rank_stops_every_rank_at_the_same_step_with_a_checkpoi
     assert int(rows[-1].split(",")[0]) == state["step"]  # the last logged step is the saved one
 
 
+def test_a_checkpoint_write_that_fails_on_rank_0_stops_every_rank_with_one_line(tmp_path):
+    """Rank 0 writes, the others wait for it: a refused write (here: disk full on rank 0's checkpoint) must
+    end every rank with a one-line error, not leave them in the next collective."""
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(
+        "import os\n"
+        "if os.environ.get('RANK') == '0':\n"
+        "    import ddp.checkpoint as c\n"
+        "    def _full(path, write, **kw):\n"
+        "        raise OSError(28, 'No space left on device')\n"
+        "    c.atomic_write = _full\n"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl",
+           "PYTHONPATH": os.pathsep.join([str(hook), os.environ.get("PYTHONPATH", "")])}
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", "ddp", "train", _recipe(tmp_path), "--set", f"train.output_dir={out}",
+           "--set", "train.num_threads=1", "--quiet"]
+    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0
+    assert "ddp: error: " + str(out / "last.pt") + ": cannot write the checkpoint: No space left on device" in done.stderr
+    assert "rank 0 could not write the checkpoint (its error says why); rank 1 stops too" in done.stderr
+    # no traceback through ddp's code on either rank (torchrun prints its own summary of the failure)
+    assert f'{os.sep}ddp{os.sep}train.py", line' not in done.stderr, done.stderr[-3000:]
+    assert not (out / "last.pt").exists()
+
+
 def test_ranks_that_would_resume_from_different_steps_are_refused(tmp_path):
     """Each rank reads last.pt itself: where train.output_dir is not shared (one folder per node), some
     ranks would resume and others start afresh, and their collectives would go out of step."""

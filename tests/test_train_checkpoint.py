@@ -178,7 +178,7 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(torch, "save", broken_save)
-    with pytest.raises(OSError):
+    with pytest.raises(CheckpointError, match=r"c\.pt: cannot write the checkpoint: disk full$"):
         save_checkpoint(path, {"step": 2})
     monkeypatch.undo()
     assert load_checkpoint(path)["step"] == 1
@@ -188,6 +188,37 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
     monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(os.path.isdir(f"/proc/self/fd/{fd}")), real_fsync(fd)))
     save_checkpoint(path, {"step": 3})
     assert synced == [False, True] and load_checkpoint(path)["step"] == 3
+
+
+def test_a_refused_checkpoint_write_is_one_line_and_training_says_so(tiny_recipe, tmp_path, monkeypatch):
+    """Disk full, a file where the folder should be, torch's zip writer failing: one line naming the file
+    (they were tracebacks: OSError / FileExistsError / RuntimeError)."""
+    blocker = tmp_path / "not_a_folder"
+    blocker.write_text("x")
+    with pytest.raises(CheckpointError, match=r"not_a_folder/last\.pt: cannot write the checkpoint: File exists"):
+        save_checkpoint(blocker / "last.pt", {"step": 1})
+
+    def zip_writer_fails(obj, f, *a, **k):
+        raise RuntimeError("[enforce fail at inline_container.cc:595] . PytorchStreamWriter failed writing file "
+                           "data/0: file write failed\nmore")
+
+    monkeypatch.setattr(torch, "save", zip_writer_fails)
+    with pytest.raises(CheckpointError, match=r"cannot write the checkpoint: .*file write failed$"):
+        save_checkpoint(tmp_path / "c.pt", {"step": 1})
+    monkeypatch.setattr(torch, "save", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("unrelated")))
+    with pytest.raises(RuntimeError, match="unrelated"):  # not every RuntimeError is a failed write
+        save_checkpoint(tmp_path / "c.pt", {"step": 1})
+    monkeypatch.undo()
+    assert os.listdir(tmp_path) == ["not_a_folder"]  # no temporary file left behind
+
+    def disk_full(obj, f, *a, **k):
+        raise OSError(28, "No space left on device")
+
+    tiny_recipe["train"].update(max_steps=2, epochs=100)
+    exp = build(tiny_recipe)
+    monkeypatch.setattr(torch, "save", disk_full)
+    with pytest.raises(CheckpointError, match=r"last\.pt: cannot write the checkpoint: No space left on device$"):
+        exp.train(output_dir=tmp_path / "run", progress=False)
 
 
 def test_atomic_files_get_the_mode_an_open_would_give(tmp_path):
