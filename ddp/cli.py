@@ -303,7 +303,7 @@ def cmd_suite(args) -> int:
             raise failed
         raise DDPError(f"no finished runs of suite {suite.name!r} in {suite.results_dir} yet")
     paths = write_suite_report(results, suite.results_dir, f"suite {suite.name} ({len(results)}/{len(suite.runs)} runs)",
-                               reference=suite.reference)
+                               reference=suite.reference, tasks_of_suite=suite.tasks)
     print(paths[0].read_text(), end="")
     print(f"wrote {', '.join(str(p) for p in paths)}")
     if isinstance(failed, SuiteTimeLimit):

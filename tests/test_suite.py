@@ -430,6 +430,24 @@ def test_an_average_over_tasks_with_different_seeds_or_missing_tasks_says_so(tmp
     assert "| dp3 | id | 50 ± 14 (n=20) | - | 50 ± 14 (1/2 tasks) |" in md
 
 
+def test_an_average_over_part_of_the_suites_tasks_is_marked_everywhere(tmp_path):
+    """A suite of three tasks with results for two: the average says 2/3 in table.md, table.csv and
+    vs_reference.md (it read as the benchmark's average, compared with the paper's as such)."""
+    results = [_result("a", "ddp", 0, {"id": 1.0}), _result("b", "ddp", 0, {"id": 0.5})]
+    suite_tasks = {"a": "mw", "b": "mw", "c": "mw"}
+    table = aggregate(results, suite_tasks)
+    assert table["benchmarks"] == {"mw": ["a", "b", "c"]} and table["tasks"] == ["a", "b"]
+    assert table["cells"]["ddp|id|avg:mw"]["missing_tasks"] == ["c"]
+    ref = {"label": "paper", "tolerance": 10, "values": {"ddp": {"id": {"mw": {"a": 90, "b": 60, "c": 10}}}}}
+    write_suite_report(results, tmp_path, "t", reference=ref, tasks_of_suite=suite_tasks)
+    assert "| ddp | id | 100 [72, 100] (n=10) | 50 [24, 76] (n=10) | 75 (2/3 tasks) |" in (tmp_path / "table.md").read_text()
+    assert "| ddp | id | mw (2/3 tasks) | 75.0 | 75 | +0.0 | yes |" in (tmp_path / "vs_reference.md").read_text()
+    rows = (tmp_path / "table.csv").read_text().splitlines()
+    assert rows[0] == "method,protocol,a_mean,a_std,b_mean,b_std,avg:mw_mean,avg:mw_std,avg:mw_tasks,avg:mw_uneven_seeds"
+    assert rows[1] == "ddp,id,1.0,,0.5,,0.75,,2/3,False"
+    assert "missing_tasks" not in aggregate(results, {"a": "mw", "b": "mw"})["cells"]["ddp|id|avg:mw"]
+
+
 def test_report_states_what_the_runs_cost(tmp_path):
     results = []
     for seed, (train, wall) in enumerate([(600.0, 900.0), (1200.0, 1500.0), (900.0, 1200.0)]):

@@ -83,11 +83,18 @@ def reference_cells(table: dict, reference: dict | None) -> dict[str, float]:
     return out
 
 
-def aggregate(results: list[dict]) -> dict:
-    """``{"rows": [(method, protocol)], "tasks": [...], "benchmarks": {name: [tasks]}, "cells": {...}}``."""
+def aggregate(results: list[dict], tasks_of_suite: dict[str, str] | None = None) -> dict:
+    """``{"rows": [(method, protocol)], "tasks": [...], "benchmarks": {name: [tasks]}, "cells": {...}}``.
+
+    ``tasks_of_suite`` (label -> benchmark, the suite file's tasks) makes a benchmark's tasks those the suite
+    lists, so that an average over the tasks with results so far says how many of them it covers
+    ("missing_tasks"); without it a benchmark is the tasks that have results.
+    """
     tasks = list(dict.fromkeys(r["task"] for r in results))
     methods = list(dict.fromkeys(r["method"] for r in results))
     benchmarks: dict[str, list[str]] = {}
+    for label, bench in (tasks_of_suite or {}).items():
+        benchmarks.setdefault(bench, []).append(label)
     for r in results:
         benchmarks.setdefault(r.get("benchmark", "all"), [])
         if r["task"] not in benchmarks[r.get("benchmark", "all")]:
@@ -141,8 +148,14 @@ def format_cell(cell: dict | None) -> str:
     if cell.get("uneven_seeds"):
         text += " †"
     if cell.get("missing_tasks"):
-        text += f" ({len(cell['tasks'])}/{len(cell['tasks']) + len(cell['missing_tasks'])} tasks)"
+        text += f" ({_coverage(cell)} tasks)"
     return text
+
+
+def _coverage(cell: dict) -> str:
+    """``k/n``: an average over k of its benchmark's n tasks."""
+    k = len(cell["tasks"])
+    return f"{k}/{k + len(cell.get('missing_tasks', []))}"
 
 
 def _columns(table: dict) -> list[str]:
@@ -188,7 +201,9 @@ def gaps_markdown(table: dict, reference: dict, title: str) -> str:
              f"| method | protocol | benchmark | ours | {label} | ours - {label} | within ±{tol:g} |",
              "|---|---|---|---|---|---|---|"]
     for m, p, c, ours, gap in averages:
-        lines.append(f"| {m} | {p} | {c[len('avg:'):]} | {ours} | {100 * ref[f'{m}|{p}|{c}']:.4g} | {gap:+.1f} | "
+        cell = table["cells"][f"{m}|{p}|{c}"]  # an average over part of the benchmark is compared over that part
+        part = f" ({_coverage(cell)} tasks)" if cell.get("missing_tasks") else ""
+        lines.append(f"| {m} | {p} | {c[len('avg:'):]}{part} | {ours} | {100 * ref[f'{m}|{p}|{c}']:.4g} | {gap:+.1f} | "
                      f"{'yes' if abs(gap) <= tol + 1e-9 else 'no'} |")
     outside = [r for r in tasks if abs(r[4]) > tol + 1e-9]
     lines += ["", f"Task cells more than {tol:g} points from the {label}'s ({len(outside)} of {len(tasks)}), "
@@ -222,13 +237,14 @@ def cost_markdown(results: list[dict], title: str) -> str:
 
 
 def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
-                       reference: dict | None = None) -> list[Path]:
+                       reference: dict | None = None, tasks_of_suite: dict[str, str] | None = None) -> list[Path]:
     """table.md, table.json, table.csv, cost.md and table.png under ``out_dir``; returns their paths. A ``reference``
     (the suite's published numbers) adds rows to table.md, a ``reference`` entry to table.json and
-    ``vs_reference.md`` (:func:`gaps_markdown`)."""
+    ``vs_reference.md`` (:func:`gaps_markdown`). ``tasks_of_suite``: see :func:`aggregate` (averages over part
+    of a benchmark's tasks are marked "(k/n tasks)" in every file)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    table = aggregate(results)
+    table = aggregate(results, tasks_of_suite)
     (out / "table.md").write_text(markdown(table, title, reference))
     (out / "cost.md").write_text(cost_markdown(results, title))
     ref = reference_cells(table, reference)
@@ -237,12 +253,17 @@ def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
     cols = _columns(table)
     with open(out / "table.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["method", "protocol", *(f"{c}_{k}" for c in cols for k in ("mean", "std"))])
+        # an average also says which of its benchmark's tasks it covers (k/n) and whether their seeds differ
+        w.writerow(["method", "protocol", *(f"{c}_{k}" for c in cols
+                                            for k in (("mean", "std", "tasks", "uneven_seeds") if c.startswith("avg:")
+                                                      else ("mean", "std")))])
         for m, p in table["rows"]:
             row = [m, p]
             for c in cols:
                 cell = table["cells"].get(f"{m}|{p}|{c}")
                 row += ["" if cell is None else cell["mean"], "" if cell is None else cell.get("std", "")]
+                if c.startswith("avg:"):
+                    row += ["", ""] if cell is None else [_coverage(cell), bool(cell.get("uneven_seeds"))]
             w.writerow(row)
     paths = [out / "table.md", out / "table.json", out / "table.csv", out / "cost.md"]
     if ref:
