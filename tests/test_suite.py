@@ -44,6 +44,36 @@ def test_how_a_run_is_evaluated_is_not_part_of_its_hash(suite_file):
     assert variant(num_envs=10, parallel=True, video=True, device="cpu").recipe_hash == run.recipe_hash
     assert variant(max_steps=8).recipe_hash != run.recipe_hash  # what is measured
     assert variant(calibration_episodes=60).recipe_hash != run.recipe_hash
+    # the recipe's own protocol list and episode count, where the suite sets them, are not what runs
+    assert run.protocols is not None and run.episodes is None  # the fixture's suite sets protocols only
+    assert variant(protocols=["id"]).recipe_hash == run.recipe_hash
+    assert variant(episodes=3).recipe_hash != run.recipe_hash  # the recipe's episode count is what runs
+    fixed = type(run)(**{**run.__dict__, "episodes": 5})  # a suite that sets episodes: 5
+    assert type(run)(**{**fixed.__dict__, "recipe": variant(episodes=3).recipe}).recipe_hash == fixed.recipe_hash
+    # how often training checkpoints and logs
+    trained = copy.deepcopy(run.recipe)
+    trained["train"].update(checkpoint_every_epochs=1, log_every_steps=1, logger="none")
+    assert type(run)(**{**run.__dict__, "recipe": trained}).recipe_hash == run.recipe_hash
+
+
+def test_results_stored_under_the_first_hash_are_kept_and_restamped(suite_file, tmp_path):
+    """Results stored before hash version 2 (every committed suite result) stay done, and are restamped, so a
+    later change of a setting the hash now leaves out does not make them stale."""
+    suite = load_suite(suite_file)
+    run = suite.runs[0]
+    store = ResultStore(tmp_path)
+    store.save(run, {"task": run.task, "protocols": {}})
+    old = json.loads(store.path(run).read_text())
+    store.path(run).write_text(json.dumps({**old, "recipe_hash": run.legacy_hash}))
+    assert run.legacy_hash != run.recipe_hash
+    assert store.status(run) == "done" and store.load(run)["recipe_hash"] == run.recipe_hash
+    assert json.loads(store.path(run).read_text())["recipe_hash"] == run.recipe_hash  # restamped on disk
+    recipe = copy.deepcopy(run.recipe)
+    recipe["eval"]["protocols"] = ["id"]  # overridden by the suite's protocols
+    recipe["train"]["log_every_steps"] = 1
+    assert store.status(type(run)(**{**run.__dict__, "recipe": recipe})) == "done"
+    recipe["train"]["lr"] = 1.0  # what is measured
+    assert store.status(type(run)(**{**run.__dict__, "recipe": recipe})) == "stale"
 
 
 def test_select_runs_a_part_and_names_the_closest_label(suite_file):

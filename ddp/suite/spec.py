@@ -40,6 +40,10 @@ __all__ = ["RunSpec", "SuiteSpec", "load_suite"]
 #: results stored before this list existed keep their hash)
 EXECUTION_ONLY = {"eval": ("num_envs", "parallel", "device", "video", "video_episodes", "video_size", "video_fps",
                            "video_camera")}
+#: also left out since hash version 2: how often training checkpoints and logs (the weights are the same;
+#: a suite may checkpoint more often so that --time-limit loses less), and a recipe's own eval.protocols /
+#: eval.episodes where the suite sets them (the suite's values are the ones evaluated)
+NOT_MEASURED = {"train": ("checkpoint_every_epochs", "log_every_steps", "logger")}
 
 KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "results_dir", "reference"}
 
@@ -66,11 +70,26 @@ class RunSpec:
     @property
     def recipe_hash(self) -> str:
         """What the run is: a changed recipe, protocol list or episode count is another run; a setting of
-        how it is evaluated (``EXECUTION_ONLY``) is not."""
-        recipe = {k: v for k, v in self.recipe.items() if k != "eval"}
-        if "eval" in self.recipe:
-            recipe["eval"] = {k: v for k, v in self.recipe["eval"].items() if k not in EXECUTION_ONLY["eval"]}
+        how it is evaluated (``EXECUTION_ONLY``) or logged (``NOT_MEASURED``) is not, nor the recipe's own
+        ``eval.protocols`` / ``eval.episodes`` where the suite sets them."""
+        left_out = {"eval": set(EXECUTION_ONLY["eval"]), **{k: set(v) for k, v in NOT_MEASURED.items()}}
+        if self.protocols is not None:
+            left_out["eval"].add("protocols")
+        if self.episodes is not None:
+            left_out["eval"].add("episodes")
+        return self._hash(left_out, version=2)
+
+    @property
+    def legacy_hash(self) -> str:
+        """The hash results were stored under before version 2 (``ResultStore`` accepts it and restamps)."""
+        return self._hash({"eval": set(EXECUTION_ONLY["eval"])}, version=1)
+
+    def _hash(self, left_out: dict[str, set], version: int) -> str:
+        recipe = {k: ({kk: vv for kk, vv in v.items() if kk not in left_out[k]} if k in left_out and isinstance(v, dict)
+                      else v) for k, v in self.recipe.items()}
         data = {"recipe": recipe, "protocols": self.protocols, "episodes": self.episodes}
+        if version > 1:
+            data["hash_version"] = version
         return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
