@@ -66,9 +66,18 @@ class JobsFailed(DDPError):
         super().__init__(f"{len(failed)} job(s) failed: " + "; ".join(f"{k} ({v})" for k, v in failed.items()))
 
 
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity (a Slurm / cgroup job's share of a node), not the
+    node's count."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # no affinity call on this platform (macOS, Windows)
+        return os.cpu_count() or 1
+
+
 def threads_per_job(jobs: int, cores: int | None = None) -> int:
-    """Each of ``jobs`` concurrent jobs' share of the machine's cores (at least one)."""
-    return max(1, (cores or os.cpu_count() or 1) // jobs)
+    """Each of ``jobs`` concurrent jobs' share of the cores this process may use (at least one)."""
+    return max(1, (cores or usable_cores()) // jobs)
 
 
 def plan_jobs(recipes: list[str], overrides: list[str], *, threads: int, protocols: str | None = None,

@@ -59,6 +59,13 @@ def test_jobs_run_side_by_side_and_print_one_table(tmp_path, capsys, child_path)
 def test_each_job_gets_its_share_of_the_cores(tmp_path):
     a, b = _recipes(tmp_path)
     assert threads_per_job(2, cores=16) == 8 and threads_per_job(3, cores=2) == 1
+    # the cores this process may use (a Slurm / cgroup job's affinity), not the node's
+    import os
+    from unittest import mock
+
+    with mock.patch.object(os, "sched_getaffinity", return_value={3, 5, 6, 7}), \
+            mock.patch.object(os, "cpu_count", return_value=128):
+        assert threads_per_job(2) == 2
     jobs = plan_jobs([a, b], ["train.lr=0.002"], threads=3, episodes=4, no_resume=True)
     for job in jobs:
         sets = [job.argv[i + 1] for i, arg in enumerate(job.argv) if arg == "--set"]

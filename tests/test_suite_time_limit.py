@@ -332,3 +332,50 @@ def test_the_total_names_the_runs_without_an_estimate():
     assert total_expected([600.0, None]) == ("10 min one after another (1 run(s) without an estimate: no stored run "
                                              "of their method)")
     assert total_expected([None, None]).startswith("unknown one after another (2 run(s)")  # not "0 s"
+
+
+def test_a_worker_that_dies_fails_the_runs_in_progress_and_the_queued_ones_run_on_a_new_pool(suite_file):
+    """A worker killed (as the OOM killer does) breaks the process pool, which fails every future it holds:
+    the two runs in training fail (their last checkpoint stands), the two queued runs, which never started,
+    run on a new pool instead of being reported failed."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from ddp.suite import SuiteRunsFailed
+
+    spec = yaml.safe_load(suite_file.read_text())
+    slow = ["train.max_steps=100000", "train.epochs=100000"]
+    spec["tasks"] = {"slow1": {"recipe": "tiny.yaml", "set": slow}, "slow2": {"recipe": "tiny.yaml", "set": slow},
+                     "fast1": "tiny.yaml", "fast2": "tiny.yaml"}
+    spec["methods"] = {"dp3": spec["methods"]["dp3"]}
+    spec["seeds"] = [0]
+    suite_file.write_text(yaml.safe_dump(spec, sort_keys=False))
+    suite = load_suite(suite_file)
+    slow_logs = [suite_file.parent / r.recipe["train"]["output_dir"] / "logs" for r in suite.runs[:2]]
+    killed: list[int] = []
+
+    def kill_a_worker():
+        deadline = time.time() + 120
+        while not all(p.exists() for p in slow_logs) and time.time() < deadline:
+            time.sleep(0.2)  # both slow runs are training
+        time.sleep(1)
+        import multiprocessing
+
+        workers = [c for c in multiprocessing.active_children() if "SpawnProcess" in c.name]
+        if workers:
+            os.kill(workers[0].pid, signal.SIGKILL)
+            killed.append(workers[0].pid)
+
+    killer = threading.Thread(target=kill_a_worker, daemon=True)
+    killer.start()
+    lines: list[str] = []
+    with pytest.raises(SuiteRunsFailed) as failed:
+        run_suite(suite, workers=2, threads=1, progress=False, echo=lines.append)
+    killer.join(timeout=5)
+    assert killed, "no worker was found to kill"
+    assert sorted(failed.value.failed) == ["slow1__dp3__seed0", "slow2__dp3__seed0"], lines
+    assert "worker process died" in failed.value.failed["slow1__dp3__seed0"]
+    assert sorted(failed.value.done) == ["fast1__dp3__seed0", "fast2__dp3__seed0"], lines
+    assert any("2 run(s) that had not started go to a new pool" in line for line in lines), lines

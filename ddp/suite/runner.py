@@ -9,7 +9,7 @@ it arrives, printing one line per run started and finished:
 
 * ``sequential`` (default): one run after another in this process;
 * ``pool``: ``workers`` processes (``concurrent.futures`` with the spawn start method), each pinned
-  to ``cpu_count // workers`` torch threads. Interrupted (Ctrl-C, or SIGTERM / SIGHUP as a scheduler
+  to ``cores // workers`` torch threads (the cores of the process's CPU affinity). Interrupted (Ctrl-C, or SIGTERM / SIGHUP as a scheduler
   sends before preempting), it starts no queued run, passes SIGTERM on to the runs in progress (a
   training run saves its checkpoint) and waits for them: no worker outlives the suite;
 * ``ray``: each run a Ray task asking for its threads as CPUs (and ``gpus_per_run`` GPUs), on a
@@ -404,15 +404,34 @@ def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None,
 
 
 def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, threads: int | None, echo,
-                 limit: _Limit) -> None:
+                 limit: _Limit, fresh_pools: int = 1) -> None:
     """``workers`` spawned processes. Interrupted (Ctrl-C, SIGTERM, SIGHUP) or at the time limit, the suite
     starts no queued run, passes SIGTERM on to the runs in progress (a training run saves its checkpoint), waits
-    for them, then stops: no worker outlives it."""
+    for them, then stops: no worker outlives it. A worker that dies (killed, out of memory) breaks the pool and
+    ends the runs in progress with it: those fail (their last checkpoint stands), and the queued runs that had
+    not started go to a new pool (``fresh_pools`` times)."""
+    broken: list[RunSpec] = []
+    _pool_once(todo, finished, failure, workers=workers, threads=threads, echo=echo, limit=limit, broken=broken)
+    if broken and fresh_pools > 0:
+        echo(f"a worker process died: {len(broken)} run(s) that had not started go to a new pool")
+        _run_on_pool(broken, finished, failure, workers=workers, threads=threads, echo=echo, limit=limit,
+                     fresh_pools=fresh_pools - 1)
+    elif broken:
+        for run in broken:
+            failure(run, RuntimeError("not started: the worker pool broke again (a worker process died)"))
+
+
+def _pool_once(todo: list[RunSpec], finished, failure, *, workers: int, threads: int | None, echo,
+               limit: _Limit, broken: list[RunSpec]) -> None:
+    """One process pool over ``todo`` (see :func:`_run_on_pool`); the runs the pool's breaking kept from
+    starting are appended to ``broken``."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
     from concurrent.futures import TimeoutError as FuturesTimeout
 
-    per = threads or max(1, (os.cpu_count() or 1) // workers)
+    from ddp.run_jobs import threads_per_job  # (ddp.run_jobs imports the suite's budget module)
+
+    per = threads or threads_per_job(workers)
     # several processes share the cores: OpenMP threads that spin between ops would steal them
     # (read by each spawned worker when it loads torch; a value the user set is kept; restored after)
     policy = os.environ.get("OMP_WAIT_POLICY")
@@ -422,10 +441,12 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker, initargs=(stop,))
     futures: dict = {}
     seen: set = set()
+    logged: dict[str, int] = {}
     try:
         with stop_signals():  # SIGTERM / SIGHUP raise Preempted here, like Ctrl-C's KeyboardInterrupt
             for run in todo:
                 echo(f"queued {run.run_id} ({per} threads; log: {run.recipe['train']['output_dir']}/log.txt)")
+                logged[run.run_id] = _log_size(run)  # what its log held before this attempt
                 futures[pool.submit(_pool_run, run, per, limit.end, limit.expected.get(run.run_id),
                                     limit.results_dir, limit.seconds)] = run
             left = None if limit.deadline is None else max(limit.deadline.left(), 0.0)
@@ -438,7 +459,7 @@ def _run_on_pool(todo: list[RunSpec], finished, failure, *, workers: int, thread
                 except FuturesTimeout:  # the time limit (only as_completed's own timeout lands here)
                     break
                 seen.add(fut)
-                _collect(fut, futures[fut], finished, failure, limit)
+                _collect(fut, futures[fut], finished, failure, limit, broken=broken, logged=logged)
             if len(seen) < len(futures):  # the time limit: stop as for SIGTERM, then say what became of each run
                 _stop_pool(pool, stop, futures)
                 for fut, run in futures.items():
@@ -476,10 +497,13 @@ def _store_finished(futures: dict, seen: set, finished) -> None:
                 seen.add(fut)
 
 
-def _collect(fut, run: RunSpec, finished, failure, limit: _Limit, stopping: bool = False) -> None:
+def _collect(fut, run: RunSpec, finished, failure, limit: _Limit, stopping: bool = False,
+             broken: list | None = None, logged: dict | None = None) -> None:
     """One pool future's outcome: stored, failed or not started; with ``stopping`` (after the time limit's
     SIGTERM) an interrupted run counts as stopped, one whose worker died (killed after the grace period, or
-    the pool broken under it: whether it saved is unknown) as killed."""
+    the pool broken under it: whether it saved is unknown) as killed. Otherwise a broken pool (a worker
+    died) fails the runs that had started (their logs say so since ``logged``) and puts the others in
+    ``broken``."""
     from concurrent.futures.process import BrokenProcessPool
 
     try:
@@ -491,6 +515,12 @@ def _collect(fut, run: RunSpec, finished, failure, limit: _Limit, stopping: bool
         if stopping and isinstance(err, BrokenProcessPool):
             limit.killed.append(run.run_id)
             return
+        if isinstance(err, BrokenProcessPool) and broken is not None:
+            if not _started_since(run, (logged or {}).get(run.run_id, 0)):
+                broken.append(run)
+                return
+            err = RuntimeError("its worker process died (killed, or out of memory?), or another run's did and the "
+                               "pool ended this one; its last checkpoint stands and the next invocation resumes it")
         if not isinstance(err, Exception):  # Ctrl-C / a SIGTERM from outside: the suite stops
             raise
         failure(run, err)
