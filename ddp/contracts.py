@@ -78,11 +78,14 @@ class NeedMoreEpisodes(ValueError):
     """Raised by :meth:`Calibratable.calibrate` when the episodes it got cannot set its threshold yet
     (e.g. too few successful ones): ``more`` is its estimate of how many further ID episodes it needs.
     ``ddp eval`` then rolls out that many more (new seeds, up to ``eval.max_calibration_episodes`` in
-    all) and calls ``calibrate`` again with every episode so far, in the order they were run."""
+    all) and calls ``calibrate`` again with every episode so far, in the order they were run. ``at_least``
+    (optional): the fewest episodes in all that could ever do, were every one of them to succeed; a cap
+    below it fails at once instead of after rolling out to the cap."""
 
-    def __init__(self, message: str, more: int):
+    def __init__(self, message: str, more: int, at_least: int | None = None):
         super().__init__(message)
         self.more = max(1, int(more))
+        self.at_least = at_least
 
 
 @runtime_checkable
@@ -130,9 +133,11 @@ class Trigger(Protocol):
 class Env(Protocol):
     """A TorchRL env (``EnvBase``) producing ``point_cloud`` [task.num_points, task.point_dim] and ``agent_pos``.
 
-    Optional, on its config dataclass: ``held_out_initial_states() -> dict``, config overrides under which
-    its resets draw none of the initial states this config's resets draw (for an env whose states repeat
-    across seeds); a detector's calibration rollouts use them unless ``eval.calibration_env`` is set.
+    Optional, on its config dataclass: ``held_out_initial_states(block=0) -> dict``, config overrides under
+    which its resets draw none of the initial states this config's resets draw (for an env whose states
+    repeat across seeds); a detector's calibration rollouts use them unless ``eval.calibration_env`` is set.
+    With ``initial_states_per_draw`` (an int: seeds that far apart repeat a state), calibration seeds move to
+    ``block`` 1, 2, ... every that many seeds, each block a draw that repeats none of the others.
     """
 
     action_hold: Any  # ddp.safety.HoldSpec: how its actions hold still (controller.on_nonfinite: hold)

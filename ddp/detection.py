@@ -78,15 +78,18 @@ def _auroc_after_visible(episodes: list[dict], reference: list[list[float]] | No
         return None
     out = []
     for k in range(horizon):
-        pos, neg = [], []
+        by_chunk: dict[int, list[float]] = {}  # chunk index -> the disturbed episodes' statistic there
         for ep in episodes:
             v = first_visible(ep)
             trace = ep.get(key)
             if v is None or trace is None or v + k >= len(trace):
                 continue
-            pos.append(trace[v + k])
-            neg += [r[v + k] for r in reference if v + k < len(r)]
-        out.append(auroc(neg, pos))
+            by_chunk.setdefault(v + k, []).append(trace[v + k])
+        # every (disturbed, ID) pair at the same chunk index, each pair once
+        pairs = [(auroc(neg, pos), sum(1 for x in pos if x == x) * sum(1 for x in neg if x == x))
+                 for c, pos in by_chunk.items() for neg in [[r[c] for r in reference if c < len(r)]]]
+        total = sum(n for _, n in pairs)
+        out.append(sum(a * n for a, n in pairs if n) / total if total else float("nan"))
     return out
 
 
@@ -271,7 +274,8 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
     fits = calibrate_all()
     cap = max(n_cal, cfg.max_calibration_episodes)
     while rollouts is None and len(cal_eps) < cap:  # as ddp eval does: more ID episodes while a variant lacks them
-        more = max((f.more for f in fits.values() if isinstance(f, NeedMoreEpisodes)), default=0)
+        more = max((f.more for f in fits.values() if isinstance(f, NeedMoreEpisodes)  # a variant that could
+                    and (f.at_least is None or f.at_least <= cap)), default=0)  # never fit under the cap: none
         if not more:
             break
         cal_eps = more_calibration_episodes(exp, cal_eps, more, cap=cap, **runs)
@@ -362,7 +366,8 @@ def load_rollouts(path) -> dict:
 def format_detect(rep: dict) -> str:
     """The comparison as a markdown table (one row per score and disturbance)."""
     lines = [
-        f"{rep['recipe']}: alpha {rep['alpha']:g} per ID episode, {rep['calibration_episodes']} ID calibration "
+        f"{rep['recipe']}: alpha {rep['alpha']:g} per ID episode (per successful one where tau is set on the "
+        f"successful held-out episodes), {rep['calibration_episodes']} ID calibration "
         f"episodes (split: fit / threshold), {rep['episodes']} test episodes per condition, seed {rep['seed']}, "
         f"{rep.get('forecast_samples', 1)} world-model sample(s) per forecast"
         + (f", env overrides {rep['env']}" if rep["env"] else ""),

@@ -224,34 +224,60 @@ def _summarise(traj, env_index: int, seed: int, latents: bool = False) -> dict:
     return out
 
 
-def calibration_env(exp) -> dict:
+def calibration_env(exp, block: int = 0) -> dict:
     """The env overrides of a detector's calibration rollouts: the ``id`` protocol's (``eval.env``,
     ``eval.max_steps``: episodes as long as evaluated ones) and ``eval.calibration_env``, or where that is
-    unset, the env's own held-out draw of initial states (its config's ``held_out_initial_states()``, for
-    envs whose initial states repeat across seeds, e.g. MetaWorld's 50 per MT1 draw): the calibration's ID
-    episodes never replay an evaluated initial state."""
-    from ddp.protocols.base import get_protocol
-
-    cfg = exp.recipe.eval
-    overrides = env_overrides(exp, get_protocol("id"), cfg.max_steps)
-    extra = cfg.calibration_env
+    unset, the env's own held-out draw of initial states (its config's ``held_out_initial_states(block)``,
+    for envs whose initial states repeat across seeds, e.g. MetaWorld's 50 per MT1 draw): the calibration's
+    ID episodes never replay an evaluated initial state."""
+    overrides, config = _id_env(exp)
+    extra = exp.recipe.eval.calibration_env
     if extra is None:
-        config = dataclasses.replace(exp.parts["env"].config, **overrides)
         held_out = getattr(config, "held_out_initial_states", None)
-        extra = held_out() if callable(held_out) else {}
+        extra = (held_out(block) if block else held_out()) if callable(held_out) else {}
     check_env_options(exp, {**overrides, **extra}, source=exp.source, key="eval.calibration_env")
     return {**overrides, **extra}
 
 
+def _id_env(exp) -> tuple[dict, object]:
+    """The ``id`` protocol's env overrides and the env config they make."""
+    from ddp.protocols.base import get_protocol
+
+    overrides = env_overrides(exp, get_protocol("id"), exp.recipe.eval.max_steps)
+    return overrides, dataclasses.replace(exp.parts["env"].config, **overrides)
+
+
+def calibration_blocks(exp, seed: int, episodes: int, first_seed: int) -> list[tuple[int, int, int]]:
+    """``(block, first seed, episodes)`` for the calibration seeds ``seed .. seed + episodes - 1``: one block
+    where the env's held-out states do not repeat (or ``eval.calibration_env`` is set), else a new block
+    (:func:`calibration_env`'s ``block``, another draw of initial states) every ``initial_states_per_draw``
+    seeds, counted from ``first_seed``'s, so that no two calibration episodes start from one state."""
+    period = None
+    if exp.recipe.eval.calibration_env is None:
+        period = getattr(_id_env(exp)[1], "initial_states_per_draw", None)
+    if not period:
+        return [(0, seed, episodes)]
+    out, s, end = [], seed, seed + episodes
+    while s < end:
+        stop = min(end, (s // period + 1) * period)
+        out.append((s // period - first_seed // period, s, stop - s))
+        s = stop
+    return out
+
+
 def calibration_episodes(exp, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
-                         parallel: bool = False) -> list[dict]:
+                         parallel: bool = False, first_seed: int | None = None) -> list[dict]:
     """ID rollouts of the base policy with the world model forecasting every cycle, each with its
     chunks' real and forecast latent windows (what a discrepancy detector is calibrated on), in the env
-    of :func:`calibration_env`."""
+    of :func:`calibration_env` (its blocks: :func:`calibration_blocks`; ``first_seed``: the calibration's
+    first seed, where these episodes continue it)."""
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
-    overrides = calibration_env(exp)
-    return rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=overrides, num_envs=num_envs,
-                            desc="calibrate detector", progress=progress, parallel=parallel, record_latents=True)
+    out = []
+    for block, start, n in calibration_blocks(exp, seed, episodes, seed if first_seed is None else first_seed):
+        out += rollout_episodes(exp, ctrl, episodes=n, seed=start, overrides=calibration_env(exp, block),
+                                num_envs=num_envs, desc="calibrate detector", progress=progress, parallel=parallel,
+                                record_latents=True)
+    return out
 
 
 def calibrate_detector(exp, detector, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
@@ -270,6 +296,9 @@ def calibrate_detector(exp, detector, *, episodes: int, seed: int, num_envs: int
         try:
             return detector.calibrate(runs, point_dims=exp.model.point_dims)
         except NeedMoreEpisodes as short:
+            if short.at_least is not None and short.at_least > cap:  # even if every episode succeeded
+                raise ValueError(f"{short}: it takes at least {short.at_least} ID calibration episodes, more than "
+                                 f"eval.max_calibration_episodes ({cap}) allows (raise it, or alpha)") from None
             if len(runs) >= cap:
                 raise ValueError(f"{short} after {len(runs)} ID calibration episodes, the most "
                                  "eval.max_calibration_episodes allows (raise it, or alpha)") from None
@@ -280,4 +309,5 @@ def more_calibration_episodes(exp, runs: list[dict], more: int, *, cap: int, **k
     """``runs`` and up to ``more`` further ID calibration episodes on the next unused seeds, ``cap`` in all
     (``kw``: :func:`calibration_episodes`' ``num_envs``, ``progress``, ``parallel``)."""
     return runs + calibration_episodes(exp, episodes=min(more, cap - len(runs)),
-                                       seed=max(e["seed"] for e in runs) + 1, **kw)
+                                       seed=max(e["seed"] for e in runs) + 1,
+                                       first_seed=min(e["seed"] for e in runs), **kw)

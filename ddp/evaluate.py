@@ -157,7 +157,7 @@ def _calibration(exp, detector, section: dict, *, seed: int, runs: dict) -> dict
                 "forecast_samples": exp.recipe.controller.forecast_samples}
     key = dict(model_hash=model_digest(exp.model), detector=section, id_env=id_env,
                episodes=cfg.calibration_episodes, max_episodes=cfg.max_calibration_episodes, seed=seed,
-               sampling=sampling)
+               sampling=sampling, device=next(exp.model.parameters()).device.type)
     path = calibration_path(exp.checkpoint_path) if exp.checkpoint_path is not None else None
     saved = load_calibration(path, **key) if path is not None else None
     if saved is not None:

@@ -96,7 +96,11 @@ def test_tau_is_set_on_successful_held_out_episodes_and_more_are_asked_for():
     nominal = fit_calibration(eps, spec, alpha=0.05, threshold_on="successful")
     held = ~np.array(split_fit(n, 0.5))
     assert everything.chunk_scale == nominal.chunk_scale  # the same fit: only tau's episodes differ
-    maxima = [np.nanmax(r) for r in nominal.reference]
+    # the reference (the ID side of AUROC) is every held-out episode, the failing ones too; tau comes from
+    # the successful ones' maxima
+    assert len(nominal.reference) == everything.threshold_episodes == 30
+    ok = ~failing[held]
+    maxima = [np.nanmax(r) for r, k in zip(nominal.reference, ok) if k]
     assert len(maxima) == nominal.threshold_episodes == int((held & ~failing).sum()) == 24
     assert nominal.tau == pytest.approx(conformal_threshold(maxima, 0.05))
     assert everything.threshold_episodes == 30 and nominal.tau < everything.tau / 10
@@ -257,6 +261,43 @@ def test_detector_calibrates_then_flags_above_tau_and_never_at_the_first_chunk()
     assert other(td)["ddp", "ood"].tolist() == [False, True, False]
 
 
+def test_a_threshold_the_episode_cap_can_never_reach_fails_before_rolling_out_more(tiny_recipe, monkeypatch):
+    """alpha 0.01 with tau set on successful held-out episodes needs 99 of them, i.e. at least 198 episodes
+    with half held out: above eval.max_calibration_episodes (160) it fails at once, not after 160 rollouts."""
+    from ddp import build, eval_runner
+
+    calls = []
+
+    def fake(exp, *, episodes, seed, **kw):
+        calls.append(episodes)
+        return [{**e, "seed": seed + i} for i, e in enumerate(episodes_from_scores(np.full((episodes, 4), 0.1)))]
+
+    monkeypatch.setattr(eval_runner, "calibration_episodes", fake)
+    exp = build(tiny_recipe)
+    strict = DiscrepancyDetector(DiscrepancyConfig(alpha=0.01, per_chunk=True))
+    with pytest.raises(ValueError, match=r"needs 99 successful.*at least 198 ID calibration episodes, more than "
+                                         r"eval.max_calibration_episodes \(160\)"):
+        eval_runner.calibrate_detector(exp, strict, episodes=40, seed=0, progress=False)
+    assert calls == [40]  # no further rollouts
+    calls.clear()
+    eval_runner.calibrate_detector(exp, DiscrepancyDetector(DiscrepancyConfig(alpha=0.05, per_chunk=True)),
+                                   episodes=20, seed=0, progress=False)
+    assert calls == [20, 20]  # reachable: more episodes are rolled out as before
+
+
+def test_whitening_floors_a_dim_without_id_variance_relative_to_the_others():
+    from ddp.detectors.scores import fit_calibration
+
+    rng = np.random.default_rng(0)
+    eps = []
+    for _ in range(40):
+        real = rng.normal(size=(5, 2, 4))
+        real[..., 3] = 0.0  # a latent dim that never varies in ID
+        eps.append({"latent_real": real, "latent_pred": np.zeros_like(real), "success": True})
+    cal = fit_calibration(eps, ScoreSpec(whiten=True), alpha=0.1)
+    assert cal.scale[3] == pytest.approx(1e-3 * np.median(cal.scale[:3] + [0.0]), rel=1e-6)  # not 1e-8
+
+
 def test_calibration_file_round_trips_and_is_bound_to_model_detector_and_env(tmp_path, tiny_recipe):
     from ddp import build
 
@@ -274,8 +315,19 @@ def test_calibration_file_round_trips_and_is_bound_to_model_detector_and_env(tmp
     assert math.isnan(again.calibration()["reference"][0][0])  # stored as null, read back as NaN
     assert not again.needs_calibration
     for change in ({"seed": 8}, {"id_env": {"a": 2}}, {"detector": {"name": "discrepancy", "alpha": 0.1}},
-                   {"model_hash": "0" * 16}, {"sampling": {"policy": {"num_inference_steps": 5}, "forecast_samples": 1}}):
+                   {"model_hash": "0" * 16}, {"sampling": {"policy": {"num_inference_steps": 5}, "forecast_samples": 1}},
+                   {"device": "cuda"}):
         assert load_calibration(path, **{**key, **change}) is None, change
+    # a file from another version of the calibration code (what the statistic or its episodes mean) is refitted
+    import ddp.calibration_file as calibration_file
+
+    old = json.loads(path.read_text())
+    old["valid_for"]["version"] = calibration_file.VERSION - 1
+    path.write_text(json.dumps(old))
+    assert load_calibration(path, **key) is None
+    del old["valid_for"]["version"]  # files written before the version existed
+    path.write_text(json.dumps(old))
+    assert load_calibration(path, **key) is None
     with torch.no_grad():
         next(exp.model.parameters()).add_(1.0)
     assert model_digest(exp.model) != key["model_hash"]
@@ -299,6 +351,12 @@ def test_detection_metrics_count_delays_misses_and_false_alarms():
     assert m["false_alarms_per_id_chunk"] == pytest.approx(2 / (5 + 2 + 2 + 2 + 3))
     # at first visibility: disturbed scores 0.2, 0.8, 0.1, 0.1 against ID 0.1 / 0.2 at those chunks
     assert m["auroc_after_visible"][0] == pytest.approx(auroc([0.1, 0.2] * 3 + [0.1, 0.2], [0.2, 0.8, 0.1, 0.1]))
+    # moves first seen at different chunks are each compared with the ID statistic at their own chunk, each
+    # (disturbed, ID) pair once: chunk 1 (ID 0.1, 0.2) and chunk 3 (ID 0.9, 1.0)
+    staggered = [{"seed": 0, "mode": [0] * 4, "disturbed": [0, 1, 1, 1], "score": [math.nan, 0.95, 0.95, 0.95]},
+                 {"seed": 1, "mode": [0] * 4, "disturbed": [0, 0, 0, 1], "score": [math.nan, 0.5, 0.5, 0.5]}]
+    m = detection_metrics(staggered, reference=[[math.nan, 0.1, 0.5, 0.9], [math.nan, 0.2, 0.5, 1.0]], horizon=1)
+    assert m["auroc_after_visible"][0] == pytest.approx(0.5)  # (2 + 0) of 4 pairs (pooled over chunks: 5 / 8)
 
 
 # ----------------------------------------------------------------------------------------- controller

@@ -357,6 +357,45 @@ def test_calibration_draws_initial_states_the_evaluation_never_does(make_env):
         calibration_env(exp)
 
 
+def test_calibration_seeds_past_one_draw_go_to_another_draw(monkeypatch):
+    """MetaWorld repeats its 50 layouts every 50 seeds: calibration episodes beyond them (alpha small,
+    threshold_on successful asking for more) take the next draw, so no two calibration episodes start from
+    one layout (they counted as independent in the conformal threshold)."""
+    from ddp import build, eval_runner
+
+    calls = []
+
+    def fake_rollouts(exp, ctrl, *, episodes, seed, overrides, **kw):
+        calls.append((seed, episodes, overrides["seed_tasks"]))
+        return [{"seed": seed + i} for i in range(episodes)]
+
+    monkeypatch.setattr(eval_runner, "rollout_episodes", fake_rollouts)
+    exp = build("recipes/metaworld/quickstart_ddp.yaml")  # evaluated on draw 1: held out from draw 2 on
+    runs = eval_runner.calibration_episodes(exp, episodes=40, seed=100000, progress=False)
+    assert calls == [(100000, 40, 2)]  # within one draw: as before
+    calls.clear()
+    runs = eval_runner.more_calibration_episodes(exp, runs, 75, cap=160, progress=False)
+    assert calls == [(100040, 10, 2), (100050, 50, 3), (100100, 15, 4)]
+    assert [r["seed"] for r in runs] == list(range(100000, 100115))
+    layouts = {(tasks, s % 50) for s0, n, tasks in [(100000, 40, 2), *calls] for s in range(s0, s0 + n)}
+    assert len(layouts) == 115  # every calibration episode its own initial state
+    calls.clear()
+    eval_runner.calibration_episodes(exp, episodes=30, seed=100030, progress=False)  # starts mid-draw
+    assert calls == [(100030, 20, 2), (100050, 10, 3)]
+    calls.clear()
+    narrow = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["env.task_indices=[0, 10]"])
+    eval_runner.calibration_episodes(narrow, episodes=25, seed=100000, progress=False)
+    assert calls == [(100000, 10, 2), (100010, 10, 3), (100020, 5, 4)]  # 10 layouts per draw
+    calls.clear()
+    narrow = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.env={seed_tasks: 1, task_indices: [0, 20]}"])
+    eval_runner.calibration_episodes(narrow, episodes=25, seed=100000, progress=False)
+    assert calls == [(100000, 20, 2), (100020, 5, 3)]  # the evaluated env's range counts
+    calls.clear()
+    own = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.calibration_env={seed_tasks: 7}"])
+    eval_runner.calibration_episodes(own, episodes=60, seed=100000, progress=False)
+    assert calls == [(100000, 60, 7)]  # a calibration env the recipe names is used as it is
+
+
 # ------------------------------------------------------ occlusion, rendering
 
 

@@ -11,7 +11,7 @@ residual (see ``ddp.detectors.scores``; ``ddp detect`` compares them on a
 checkpoint). ``tau`` fixes the threshold instead (in the statistic's units).
 ``threshold_on: successful`` (the default) sets tau on the held-out ID episodes
 that succeeded only: false alarms are then bounded by ``alpha`` over nominal
-episodes, and a failing ID episode, whose residual can wander far (it leaves
+(successful) episodes, by ``alpha`` + the ID failure rate over all ID episodes, and a failing ID episode, whose residual can wander far (it leaves
 the demonstrations), does not set the threshold for every other one.
 
 Reads the controller's ``("ddp", "latent_real")`` / ``("ddp", "latent_pred")``
@@ -37,7 +37,9 @@ from ddp.registry import register
 @dataclass
 class DiscrepancyConfig:
     tau: float | None = None  # threshold on the statistic; null = calibrate it from ID rollouts for alpha
-    alpha: float = 0.05  # target probability that an ID episode raises a false alarm (calibration)
+    # target probability that an ID episode raises a false alarm (calibration); with threshold_on: successful,
+    # an ID episode the policy solves (over all ID episodes: at most alpha + the ID failure rate)
+    alpha: float = 0.05
     dims: str = "all"  # latent dims scored: all, point (point-cloud features), state
     frames: str = "mean"  # frames of the window: mean, newest, max
     whiten: bool = False  # residuals divided per dim by their ID std (calibrated)

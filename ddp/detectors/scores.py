@@ -177,8 +177,9 @@ class ScoreCalibration:
     ``center`` / ``scale``: per latent dim residual mean / std (whitening); ``chunk_scale``: the ID
     score per chunk phase (``per_chunk``: its median, or its ``chunk_quantile``), ``chunk_fallback``: the
     same quantile over all chunks (the scale of chunks past the table; None: ``median``), ``median``: the
-    median over all chunks; ``tau``: the threshold on the statistic; ``reference``: the held-out ID
-    statistic per chunk (AUROC in reports).
+    median over all chunks; ``tau``: the threshold on the statistic; ``reference``: the statistic per
+    chunk of every held-out ID episode (the ID side of AUROC in reports; with ``threshold_on: successful``
+    the failing ones too, though only the successful ones set tau).
     """
 
     alpha: float | None = None
@@ -309,8 +310,10 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
             raise NeedMoreEpisodes(
                 f"alpha {alpha:g} needs {need} successful held-out ID calibration episodes for its threshold "
                 f"(threshold_on: successful); {len(ok)} of {len(held)} succeeded",
-                more=math.ceil((need - len(ok)) / (share * rate)))
-        held = ok
+                more=math.ceil((need - len(ok)) / (share * rate)), at_least=math.ceil(need / share))
+    reference_eps = held  # every held-out ID episode, failing ones too: the ID side of the reports' AUROC
+    if tau is None and threshold_on == "successful":
+        held = [e for e in held if e["success"]]
     cal = ScoreCalibration(alpha=alpha, fit_episodes=n_fit, threshold_episodes=len(held) if tau is None else 0,
                            threshold_on=threshold_on, fit_on=fit_on)
     if spec.whiten:
@@ -322,7 +325,8 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
         if res.shape[0] < 2:
             raise ValueError("whitening needs ID residuals from at least two forecast chunks")
         cal.center = res.mean(0).tolist()
-        cal.scale = np.maximum(res.std(0), 1e-8).tolist()
+        std = res.std(0)  # a dim with (almost) no ID variance is floored relative to the others, not at 1e-8,
+        cal.scale = np.maximum(std, max(1e-3 * float(np.median(std)), 1e-12)).tolist()  # or noise reads as 1e5 sigma
     if spec.spread:
         stds = np.concatenate([_episode_std(e, spec).numpy().reshape(-1, np.shape(e["latent_real"])[-1]) for e in fit])
         stds = stds[np.isfinite(stds).all(1)]
@@ -346,10 +350,12 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
                 near = np.asarray([v for v in near if np.isfinite(v)])
                 table.append(float(max(np.quantile(near, spec.chunk_quantile), 1e-12)) if near.size else cal.chunk_fallback)
             cal.chunk_scale = table
-    stats = [episode_statistic(s, spec, cal) for s in _scores(held, spec, point_dims, cal)]
+    stats = [episode_statistic(s, spec, cal) for s in _scores(reference_eps, spec, point_dims, cal)]
     cal.reference = [[float(v) for v in s] for s in stats]
-    if tau is None:
-        maxima = [np.nanmax(s) if np.isfinite(s).any() else 0.0 for s in stats]
+    if tau is None:  # tau from the episodes that set it (threshold_on): ids keep the two lists aligned
+        setting = {id(e) for e in held}
+        maxima = [np.nanmax(s) if np.isfinite(s).any() else 0.0 for e, s in zip(reference_eps, stats)
+                  if id(e) in setting]
         cal.tau = conformal_threshold(maxima, alpha)
     else:
         cal.tau = float(tau)

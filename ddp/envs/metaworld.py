@@ -204,12 +204,22 @@ class MetaWorldEnvConfig(ObservationOptions):
         if self.displacement_delta is not None and len(self.displacement_delta) != 3:
             raise ValueError(f"displacement_delta needs 3 entries; got {self.displacement_delta}")
 
-    def held_out_initial_states(self) -> dict:
-        """Overrides under which no reset draws an initial state that this config's resets draw: the next
-        MT1 draw (``seed_tasks + 1``). A reset here picks state ``seed % 50`` of one draw, so seeds 50 apart
-        repeat a layout; the detector's calibration rollouts (``ddp eval``, ``ddp detect``) use these, else
-        their seeds (the evaluation's + 100000) would replay the evaluated layouts."""
-        return {"seed_tasks": self.seed_tasks + 1}
+    def held_out_initial_states(self, block: int = 0) -> dict:
+        """Overrides under which no reset draws an initial state that this config's resets draw: a later
+        MT1 draw (``seed_tasks + 1 + block``). A reset here picks state ``seed % 50`` of one draw (of the
+        ``task_indices`` range), so seeds 50 apart repeat a layout; the detector's calibration rollouts
+        (``ddp eval``, ``ddp detect``) use these, else their seeds (the evaluation's + 100000) would replay
+        the evaluated layouts, and go to the next ``block`` every :attr:`initial_states_per_draw` seeds, so
+        that none of them replays another's."""
+        if block < 0:
+            raise ValueError(f"block must be >= 0; got {block}")
+        return {"seed_tasks": self.seed_tasks + 1 + block}
+
+    @property
+    def initial_states_per_draw(self) -> int:
+        """How many consecutive seeds reset to distinct initial states (then they repeat)."""
+        start, stop = self.task_indices
+        return stop - start
 
     @property
     def task_spec(self) -> MetaWorldTask | None:
