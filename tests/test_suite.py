@@ -106,6 +106,10 @@ def test_task_protocols_keep_those_a_task_supports(suite_file):
     ({"set": ["train.lrr=1"]}, "train.lrr"),
     ({"methods": {"x": {"overlay": "missing.yaml"}}}, "overlay file not found"),
     ({"output_dir": "/scratch"}, "unknown key 'output_dir'; did you mean 'results_dir'"),  # run folders are fixed
+    # labels name <task>__<method>__seed<k> files: 'a__b' x 'c' and 'a' x 'b__c' would share one
+    ({"methods": {"b__c": {}}}, r"methods.b__c.*without '__'"),
+    ({"tasks": {"near/x": "tiny.yaml"}}, r"tasks.near/x.*letters, digits"),
+    ({"methods": {"dp3,ddp": {}}}, r"methods.dp3,ddp.*letters, digits"),
 ])
 def test_bad_suite_files_are_one_line(suite_file, edit, message):
     data = yaml.safe_load(suite_file.read_text())
@@ -476,6 +480,18 @@ def test_an_average_over_part_of_the_suites_tasks_is_marked_everywhere(tmp_path)
     assert rows[0] == "method,protocol,a_mean,a_std,b_mean,b_std,avg:mw_mean,avg:mw_std,avg:mw_tasks,avg:mw_uneven_seeds"
     assert rows[1] == "ddp,id,1.0,,0.5,,0.75,,2/3,False"
     assert "missing_tasks" not in aggregate(results, {"a": "mw", "b": "mw"})["cells"]["ddp|id|avg:mw"]
+
+
+def test_a_report_removes_the_files_an_earlier_one_wrote_that_it_does_not(tmp_path):
+    """vs_reference.md of a suite that no longer names a reference, detection.png when no stored run has
+    traces: left behind, they described other results than the table beside them."""
+    results = [_result("a", "ddp", 0, {"id": 1.0})]
+    (tmp_path / "vs_reference.md").write_text("old gaps")
+    (tmp_path / "detection.png").write_bytes(b"old figure")
+    paths = write_suite_report(results, tmp_path, "t")
+    assert not (tmp_path / "vs_reference.md").exists() and not (tmp_path / "detection.png").exists()
+    assert {p.name for p in paths} == {"table.md", "table.json", "table.csv", "cost.md", "table.png"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in paths)  # no temporary files
 
 
 def test_report_states_what_the_runs_cost(tmp_path):

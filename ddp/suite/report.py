@@ -14,6 +14,7 @@ reference ``vs_reference.md`` (the gaps to the published numbers), and the figur
 from __future__ import annotations
 
 import csv
+import io
 import math
 import statistics
 from pathlib import Path
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ddp import results_json
+from ddp.atomic_file import atomic_write
 from ddp.suite.figures import plot_detection, plot_table
 from ddp.suite.store import evaluation_seconds
 
@@ -245,36 +247,45 @@ def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     table = aggregate(results, tasks_of_suite)
-    (out / "table.md").write_text(markdown(table, title, reference))
-    (out / "cost.md").write_text(cost_markdown(results, title))
+
+    def write(name: str, text: str) -> None:  # whole or not at all (a report is committed beside its results)
+        atomic_write(out / name, lambda f: f.write(text), binary=False)
+
+    write("table.md", markdown(table, title, reference))
+    write("cost.md", cost_markdown(results, title))
     ref = reference_cells(table, reference)
     extra = {"reference": {"label": reference["label"], "cells": ref}} if reference else {}
-    (out / "table.json").write_text(results_json.dumps({**table, "rows": [list(r) for r in table["rows"]], **extra}))
+    write("table.json", results_json.dumps({**table, "rows": [list(r) for r in table["rows"]], **extra}))
     cols = _columns(table)
-    with open(out / "table.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        # an average also says which of its benchmark's tasks it covers (k/n) and whether their seeds differ
-        w.writerow(["method", "protocol", *(f"{c}_{k}" for c in cols
-                                            for k in (("mean", "std", "tasks", "uneven_seeds") if c.startswith("avg:")
-                                                      else ("mean", "std")))])
-        for m, p in table["rows"]:
-            row = [m, p]
-            for c in cols:
-                cell = table["cells"].get(f"{m}|{p}|{c}")
-                row += ["" if cell is None else cell["mean"], "" if cell is None else cell.get("std", "")]
-                if c.startswith("avg:"):
-                    row += ["", ""] if cell is None else [_coverage(cell), bool(cell.get("uneven_seeds"))]
-            w.writerow(row)
+    buffer = io.StringIO(newline="")
+    w = csv.writer(buffer)
+    # an average also says which of its benchmark's tasks it covers (k/n) and whether their seeds differ
+    w.writerow(["method", "protocol", *(f"{c}_{k}" for c in cols
+                                        for k in (("mean", "std", "tasks", "uneven_seeds") if c.startswith("avg:")
+                                                  else ("mean", "std")))])
+    for m, p in table["rows"]:
+        row = [m, p]
+        for c in cols:
+            cell = table["cells"].get(f"{m}|{p}|{c}")
+            row += ["" if cell is None else cell["mean"], "" if cell is None else cell.get("std", "")]
+            if c.startswith("avg:"):
+                row += ["", ""] if cell is None else [_coverage(cell), bool(cell.get("uneven_seeds"))]
+        w.writerow(row)
+    write("table.csv", buffer.getvalue())
     paths = [out / "table.md", out / "table.json", out / "table.csv", out / "cost.md"]
     if ref:
-        (out / "vs_reference.md").write_text(gaps_markdown(table, reference, title))
+        write("vs_reference.md", gaps_markdown(table, reference, title))
         paths.append(out / "vs_reference.md")
+    else:  # an earlier report's, from when the suite named a reference
+        (out / "vs_reference.md").unlink(missing_ok=True)
     try:
         paths.append(plot_table(table, cols, out / "table.png", title, ref,
                                 reference["label"] if reference else "paper"))
         traces = plot_detection(results, out / "detection.png", f"{title}: the detector's statistic per episode")
         if traces is not None:
             paths.append(traces)
-    except ImportError:  # no matplotlib: the tables alone
+        else:  # no stored run has traces now: an earlier report's figure would describe other runs
+            (out / "detection.png").unlink(missing_ok=True)
+    except ImportError:  # no matplotlib: the tables alone (figures already there are left as they are)
         pass
     return paths

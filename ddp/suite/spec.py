@@ -48,6 +48,11 @@ NOT_MEASURED = {"train": ("checkpoint_every_epochs", "log_every_steps", "logger"
 KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "results_dir", "reference"}
 
 
+def _plain(label) -> bool:
+    """Letters, digits, '-' and '_' only (a name that is safe in a path and in a comma-separated list)."""
+    return isinstance(label, str) and bool(label) and label.replace("-", "").replace("_", "").isalnum()
+
+
 @dataclass(frozen=True)
 class RunSpec:
     """One training + evaluation run of a suite: everything a worker needs (picklable)."""
@@ -180,13 +185,19 @@ def load_suite(path: str | Path) -> SuiteSpec:
         raise RecipeError(f"unknown key '{unknown[0]}'{suggest(unknown[0], KNOWN)} (known: {', '.join(sorted(KNOWN))})",
                           source=source, key=unknown[0])
     name = data.get("name") or Path(path).stem
-    if not isinstance(name, str) or not name.replace("-", "").replace("_", "").isalnum():
+    if not _plain(name):
         raise RecipeError(f"must be a name of letters, digits, '-' and '_', got {name!r}", source=source, key="name")
     tasks, methods = data.get("tasks"), data.get("methods") or {"default": {}}
     if not isinstance(tasks, dict) or not tasks:
         raise RecipeError("must map task labels to recipes", source=source, key="tasks")
     if not isinstance(methods, dict):
         raise RecipeError("must map method labels to {overlay, set, protocols}", source=source, key="methods")
+    # labels name result files and run folders (<task>__<method>__seed<k>) and are chosen by --tasks a,b
+    for kind, labels in (("tasks", tasks), ("methods", methods)):
+        for label in labels:
+            if not _plain(label) or "__" in label:
+                raise RecipeError(f"label {label!r} must be letters, digits, '-' and '_' without '__' (it names "
+                                  "result files and run folders)", source=source, key=f"{kind}.{label}")
     seeds = data.get("seeds", [0])
     if not isinstance(seeds, list) or not seeds or not all(isinstance(s, int) and not isinstance(s, bool)
                                                            for s in seeds):
