@@ -171,7 +171,7 @@ def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
     suite = load_suite(suite_file)
     calls = []
     real = runner.execute_run
-    monkeypatch.setattr(runner, "execute_run", lambda run, threads=None: calls.append(run.run_id) or real(run, 1))
+    monkeypatch.setattr(runner, "execute_run", lambda run, threads=None, **kw: calls.append(run.run_id) or real(run, 1, **kw))
     done = run_suite(suite, progress=False, echo=lambda *_: None)
     assert sorted(done) == sorted(r.run_id for r in suite.runs) and len(calls) == 8
     store = ResultStore(suite.results_dir)

@@ -94,6 +94,21 @@ def test_a_run_that_could_never_fit_starts_while_time_is_left():
     assert not late.allows(8.0, 10.0) and late.allows(4.0, 10.0) and late.allows(11.0, 10.0)
     assert late.allows(9.6, 10.0)  # within 5 % of the whole limit: no attempt would find that much time left
     assert not Deadline(time.time() - 1.0).allows(None, 10.0) and not Deadline(time.time() - 1).allows(11.0, 10.0)
+    # a run with only its evaluation left starts it over in every budget: it never starts if it cannot fit
+    assert not fresh.allows(3600.0, 10.0, trains=False) and fresh.allows(8.0, 10.0, trains=False)
+
+
+def test_only_a_run_with_training_left_counts_as_progressing(tmp_path, monkeypatch):
+    from ddp.suite import budget
+
+    monkeypatch.chdir(tmp_path)
+    run = dataclasses.replace(_run_stub(tmp_path), recipe={"train": {"output_dir": "runs/x", "max_steps": 10}})
+    assert budget.trains_on(run)  # no checkpoint yet
+    monkeypatch.setattr(budget, "_checkpoint_step", lambda r: 7)
+    assert budget.trains_on(run)
+    monkeypatch.setattr(budget, "_checkpoint_step", lambda r: 10)
+    assert not budget.trains_on(run)  # trained: only evaluation is left
+    assert not budget.trains_on(dataclasses.replace(run, reevaluate=("id",)))
 
 
 @pytest.mark.parametrize("first_cost", [2.0, 9.0])
@@ -111,7 +126,7 @@ def test_runs_that_do_not_fit_wait_and_the_limit_stops_the_one_in_progress(suite
 
     calls, stops = [], []
 
-    def fake_run(run, threads=None):
+    def fake_run(run, threads=None, deferred=None):
         calls.append(run.run_id)
         if len(calls) == 1:  # the first ddp run (no estimate yet: it starts) takes 3 s, reporting first_cost
             time.sleep(3)
@@ -145,7 +160,7 @@ def test_runs_that_do_not_fit_wait_and_the_limit_stops_the_one_in_progress(suite
 
     # without a limit nothing is skipped: the same suite runs everything it has not stored
     calls.clear()
-    monkeypatch.setattr(runner, "execute_run", lambda run, threads=None: calls.append(run.run_id)
+    monkeypatch.setattr(runner, "execute_run", lambda run, threads=None, **kw: calls.append(run.run_id)
                         or _fake_result(run, 1.0, [1.0], 2.0))
     run_suite(suite, progress=False, echo=lambda *_: None)
     assert calls == ["near__dp3__seed0", "near__ddp__seed1", "near__dp3__seed1"]
@@ -379,3 +394,28 @@ def test_a_worker_that_dies_fails_the_runs_in_progress_and_the_queued_ones_run_o
     assert "worker process died" in failed.value.failed["slow1__dp3__seed0"]
     assert sorted(failed.value.done) == ["fast1__dp3__seed0", "fast2__dp3__seed0"], lines
     assert any("2 run(s) that had not started go to a new pool" in line for line in lines), lines
+
+
+def test_a_stop_while_a_finished_run_makes_its_result_keeps_the_result(suite_file, monkeypatch):
+    """SIGTERM (the time limit's own, or a scheduler's) that lands after the evaluation returned, while the
+    result is being made (code_version runs git for seconds), stores the result, then stops: the evaluation
+    was thrown away and run again by the next invocation."""
+    from ddp.preemption import Preempted
+    from ddp.suite import runner
+
+    real = runner.code_version
+
+    def slow_git():
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.2)
+        return real()
+
+    monkeypatch.setattr(runner, "code_version", slow_git)
+    suite = select(load_suite(suite_file), tasks=["near"], methods=["dp3"])
+    with pytest.raises(Preempted):
+        run_suite(suite, workers=1, threads=1, progress=False, echo=lambda *_: None)
+    store = ResultStore(suite.results_dir)
+    assert store.load(suite.runs[0]) is not None  # stored whole
+    assert store.load(suite.runs[1]) is None  # the stop held: the next run never started
+    log = (suite_file.parent / suite.runs[0].recipe["train"]["output_dir"] / "log.txt").read_text()
+    assert log.rstrip().endswith("finished")

@@ -31,7 +31,7 @@ from ddp.errors import DDPError
 from ddp.suite.spec import RunSpec
 from ddp.suite.store import evaluation_seconds, read_complete
 
-__all__ = ["Deadline", "SuiteTimeLimit", "estimate_seconds", "parse_duration", "stored_results",
+__all__ = ["Deadline", "SuiteTimeLimit", "estimate_seconds", "trains_on", "parse_duration", "stored_results",
            "total_expected", "EXIT_TIME_LIMIT"]
 
 EXIT_TIME_LIMIT = 75  # sysexits.h EX_TEMPFAIL: "temporary failure, user is invited to retry"
@@ -150,6 +150,16 @@ def estimate_seconds(run: RunSpec, stored: list[dict]) -> tuple[float | None, st
     return expected, source + f" + {fmt_minutes(statistics.median(rest))} evaluation and setup"
 
 
+def trains_on(run: RunSpec) -> bool:
+    """Whether starting ``run`` would train (its checkpoint, if any, is short of its step budget): only such a
+    run makes progress that outlives a stop (a re-evaluation, or a run whose training is done, starts its
+    evaluation over each time)."""
+    budget = run.recipe.get("train", {}).get("max_steps")
+    if run.reevaluate or not isinstance(budget, int) or budget <= 0:
+        return not run.reevaluate
+    return (_checkpoint_step(run) or 0) < budget
+
+
 @dataclass
 class Deadline:
     """A wall-clock end (``time.time()``: the same in every process of this machine)."""
@@ -163,15 +173,16 @@ class Deadline:
     def left(self) -> float:
         return self.end - time.time()
 
-    def allows(self, expected: float | None, limit: float | None = None) -> bool:
+    def allows(self, expected: float | None, limit: float | None = None, trains: bool = True) -> bool:
         """Whether a run expected to take ``expected`` seconds (None: unknown) may start now: while time is left,
         if it fits in that time, or if it could not fit in a whole ``limit`` anyway (within 5 % of it: it
         needs several budgets whatever happens; its checkpoint carries it over, and the next budget sees
-        it resuming)."""
+        it resuming) and it still ``trains`` (a run with only its evaluation left keeps nothing of a
+        stopped attempt: it would start over in every budget)."""
         left = self.left()
         # "longer than the whole limit" with slack: time goes before the first check (reading results, starting
         # workers), and a run just under the limit would otherwise never find that much left in any attempt
-        never_fits = limit is not None and expected is not None and expected > 0.95 * limit
+        never_fits = trains and limit is not None and expected is not None and expected > 0.95 * limit
         return left > 0 and (expected is None or expected <= left or never_fits)
 
 

@@ -39,7 +39,7 @@ from pathlib import Path
 
 from ddp.errors import DDPError
 from ddp.preemption import Preempted, interruption, signals_deferred, stop_signals
-from ddp.suite.budget import (Deadline, SuiteTimeLimit, estimate_seconds, fmt_elapsed, fmt_minutes,
+from ddp.suite.budget import (Deadline, SuiteTimeLimit, estimate_seconds, fmt_elapsed, fmt_minutes, trains_on,
                               stored_results, total_expected)
 from ddp.suite.provenance import code_version, process_code
 from ddp.suite.spec import RunSpec, SuiteSpec
@@ -81,8 +81,11 @@ def _summary(protocol: dict) -> dict:
     return out
 
 
-def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None) -> dict:
-    """Train and evaluate one run; its console output goes to its log file. Returns its result."""
+def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None,
+                deferred: list[int] | None = None) -> dict:
+    """Train and evaluate one run; its console output goes to its log file. Returns its result. A stop signal
+    that arrives once the evaluation has returned is held back until the result is made and recorded in
+    ``deferred`` (the caller stores the result, then stops), so a finished evaluation is never thrown away."""
     import torch
 
     from ddp.experiment import build
@@ -109,18 +112,19 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
             exp.load_checkpoint(trained.checkpoint)
             report = exp.evaluate(list(run.protocols) if run.protocols else None, episodes=run.episodes,
                                   progress=False)
-            result = {
-                "run_id": run.run_id, "suite": run.suite, "task": run.task, "method": run.method, "seed": run.seed,
-                "benchmark": run.benchmark,
-                # seconds: all training behind the checkpoint; attempt_seconds: this call's (the rest of
-                # wall_seconds is setup and evaluation, what a time limit's estimate needs)
-                "train": {"steps": trained.steps, "seconds": trained.total_seconds,
-                          "attempt_seconds": trained.seconds, "loss": trained.loss},
-                "episodes": report["episodes"],
-                "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
-                "wall_seconds": time.perf_counter() - t0,
-                "code": code_version(),
-            }
+            with signals_deferred(deferred):  # the evaluation is done: making its result (git calls) finishes
+                result = {
+                    "run_id": run.run_id, "suite": run.suite, "task": run.task, "method": run.method,
+                    "seed": run.seed, "benchmark": run.benchmark,
+                    # seconds: all training behind the checkpoint; attempt_seconds: this call's (the rest of
+                    # wall_seconds is setup and evaluation, what a time limit's estimate needs)
+                    "train": {"steps": trained.steps, "seconds": trained.total_seconds,
+                              "attempt_seconds": trained.seconds, "loss": trained.loss},
+                    "episodes": report["episodes"],
+                    "protocols": {name: _summary(p) for name, p in report["protocols"].items()},
+                    "wall_seconds": time.perf_counter() - t0,
+                    "code": code_version(),
+                }
         except BaseException as err:  # the traceback stays with the run (the suite prints one line)
             if isinstance(err, KeyboardInterrupt):
                 print(f"== {run.run_id} stopped ({err or 'interrupted'}; a training run saved its checkpoint)", flush=True)
@@ -201,7 +205,7 @@ def _start_or_not(run: RunSpec, threads: int | None, end: float | None, expected
     (re-estimated from ``results_dir`` if given; see :meth:`Deadline.allows` for ``limit``)."""
     if end is not None:
         expected = _expected_now(run, expected, results_dir)
-        if not Deadline(end).allows(expected, limit):
+        if not Deadline(end).allows(expected, limit, trains_on(run)):
             return NotStarted(expected)
     return execute_run(run, threads, cwd)
 
@@ -331,7 +335,7 @@ class _Limit:
         if self.deadline is None:
             return True
         self.expected[run.run_id] = _expected_now(run, self.expected.get(run.run_id), self.results_dir)
-        return self.deadline.allows(self.expected[run.run_id], self.seconds)
+        return self.deadline.allows(self.expected[run.run_id], self.seconds, trains_on(run))
 
 
 def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None, echo, limit: _Limit) -> None:
@@ -372,8 +376,9 @@ def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None,
                             continue
                         state["run"] = run
                     echo(f"started {run.run_id} (log: {run.recipe['train']['output_dir']}/log.txt)")
+                    held: list[int] = []  # a stop that came while the finished run's result was being made
                     try:
-                        result = execute_run(run, threads)
+                        result = execute_run(run, threads, deferred=held)
                     except Exception as err:  # the next run still runs; KeyboardInterrupt / Preempted stop it
                         with signals_deferred() as received, guard:
                             state["run"] = None
@@ -382,7 +387,7 @@ def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None,
                         if received:
                             raise interruption(received[0]) from None
                         continue
-                    with signals_deferred() as received, guard:  # a result being stored is stored whole
+                    with signals_deferred(held) as received, guard:  # a result being stored is stored whole
                         state["run"] = None
                         finished(run, result)
                         handled.add(run.run_id)
