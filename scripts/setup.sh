@@ -2,8 +2,11 @@
 # Create ./.venv (if missing) and install ddp into it with the given extras.
 #   bash scripts/setup.sh            # core
 #   bash scripts/setup.sh dev        # + test tools
-# torch==2.13.0 is installed first: its CPU wheel lies on this machine's disk,
-# while a bare `torch` requirement would pull a multi-GB CUDA build.
+# torch==2.13.0 is installed first: a bare `torch` requirement would pull a
+# multi-GB CUDA build. Where pip finds a CPU wheel of it (this project's machines
+# keep one in their wheel cache) that one is taken; elsewhere on Linux, PyPI's
+# torch==2.13.0 is the CUDA build: name PyTorch's CPU index instead,
+#   TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu bash scripts/setup.sh dev
 set -euo pipefail
 cd "$(dirname "$0")/.."
 EXTRAS="${1:-}"
@@ -15,7 +18,7 @@ fi
 PIP="$VENV/bin/python -m pip"
 $PIP install -q --upgrade pip >/dev/null
 $VENV/bin/python -c "import torch, sys; sys.exit(0 if torch.__version__.startswith('2.13.0') else 1)" 2>/dev/null \
-    || $PIP install -q "torch==2.13.0"
+    || $PIP install -q ${TORCH_INDEX_URL:+--index-url "$TORCH_INDEX_URL"} "torch==2.13.0"
 if [ -n "$EXTRAS" ]; then
     $PIP install -q -e ".[$EXTRAS]"
 else
