@@ -316,6 +316,11 @@ def cmd_suite(args) -> int:
 
 
 def cmd_run(args) -> int:
+    with stop_signals():  # SIGTERM / SIGHUP end it like Ctrl-C: a checkpoint is saved, envs close (a robot stops)
+        return _run(args)
+
+
+def _run(args) -> int:
     from pathlib import Path
 
     from ddp.evaluate import markdown_table

@@ -63,9 +63,11 @@ def test_a_closed_pipe_ends_quietly():
     assert out.stdout.startswith("encoder:") and "Traceback" not in out.stderr, out.stderr
 
 
-def test_sigterm_ends_an_evaluation_through_its_clean_up(tmp_path):
-    """ddp eval stopped by SIGTERM (a scheduler, a robot's supervisor) unwinds like Ctrl-C: its envs close (a
-    real robot's backend stops) and it exits 128 + 15 with one line, instead of dying mid-motion."""
+@pytest.mark.parametrize("command", ["eval", "run"])
+def test_sigterm_ends_an_evaluation_through_its_clean_up(tmp_path, command):
+    """ddp eval (or ddp run, in its evaluation) stopped by SIGTERM (a scheduler, a robot's supervisor) unwinds
+    like Ctrl-C: its envs close (a real robot's backend stops) and it exits 128 + 15 with one line, instead of
+    dying mid-motion."""
     import signal
     import threading
     import time
@@ -81,9 +83,10 @@ def test_sigterm_ends_an_evaluation_through_its_clean_up(tmp_path):
                                               eval={"episodes": 400, "protocols": ["id"], "max_steps": 48})))
     torch.set_num_threads(1)
     assert main(["train", str(recipe), "--quiet"]) == 0
-    proc = subprocess.Popen([sys.executable, "-m", "ddp", "eval", str(recipe), "--checkpoint",
-                             str(tmp_path / "run" / "last.pt"), "--output-dir", str(tmp_path / "eval")],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    argv = (["eval", str(recipe), "--checkpoint", str(tmp_path / "run" / "last.pt"), "--output-dir",
+             str(tmp_path / "eval")] if command == "eval" else ["run", str(recipe)])  # run: trained, resumes
+    proc = subprocess.Popen([sys.executable, "-m", "ddp", *argv], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True)
     seen = []
     reader = threading.Thread(target=lambda: seen.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
     reader.start()

@@ -163,6 +163,109 @@ def test_config_validation_and_camera_errors():
         make_camera("policy", {"type": "realsense"})
 
 
+@pytest.mark.parametrize("key, value, message", [
+    ("max_reach", float("nan"), "max_reach must be in"),  # NaN switched the reach limit off
+    ("max_reach", 2.0, "max_reach must be in"),
+    ("max_step_translation", float("inf"), "max_step_translation must be a finite number"),
+    ("max_step_rotation", float("inf"), "max_step_rotation must be a finite number"),
+    ("control_period", float("inf"), "control_period must be a finite number"),  # an endless sleep
+    ("collision_force", -1.0, "collision_force must be a finite number"),
+    ("gripper_open_width", 0.5, "gripper_open_width must be in"),
+    ("home_joints", (0.0, -0.4, 0.0, 0.5, 0.0, 2.1, 0.78), r"home_joints\[3\] must be within the joint's limits"),
+    ("home_joints", (0.0, float("nan"), 0.0, -2.5, 0.0, 2.1, 0.78), r"home_joints\[1\]"),
+    ("workspace_high", (0.7, 0.45, float("inf")), "workspace_low/high must be 3 finite numbers"),
+    ("reset_lift", -0.1, "reset_lift must be a finite number >= 0"),
+])
+def test_real_backend_settings_that_would_switch_a_limit_off_are_refused(key, value, message):
+    with pytest.raises(ValueError, match=f"env.real.{message}"):
+        RealBackendConfig(**{key: value})
+
+
+class _FakeFranky:
+    """The few franky calls the backend's reset makes, recorded in ``events`` in the order they happen."""
+
+    def __init__(self):
+        events, self.events = [], []
+        self.events = events
+        self.RealtimeConfig = type("RealtimeConfig", (), {"Enforce": 1, "Ignore": 0})
+        self.ReferenceType = type("ReferenceType", (), {"Absolute": "absolute"})
+        self.Affine = lambda position, quaternion: (np.asarray(position), np.asarray(quaternion))
+        self.CartesianMotion = lambda affine, ref: ("cartesian", affine[0])
+        self.JointMotion = lambda q: ("joint", tuple(q))
+
+        class Future:
+            def wait(self, timeout):
+                return True
+
+        class Gripper:
+            max_width, width = 0.08, 0.02
+
+            def __init__(self, host):
+                pass
+
+            def move_async(self, width, speed):
+                events.append(("gripper", "open"))
+                return Future()
+
+            def grasp_async(self, *args):
+                events.append(("gripper", "close"))
+                return Future()
+
+        class Robot:
+            has_errors = False
+
+            def __init__(self, host, realtime_config=None):
+                self.pose = np.array([0.5, 0.0, 0.02]), np.array([1.0, 0.0, 0.0, 0.0])  # low, over the table
+
+            def set_collision_behavior(self, *args):
+                pass
+
+            def join_motion(self, timeout):
+                return True
+
+            def move(self, motion, asynchronous=False):
+                events.append(motion)
+                if motion[0] == "cartesian":
+                    self.pose = (np.asarray(motion[1]), self.pose[1])
+
+            @property
+            def current_cartesian_state(self):
+                x, y, z, w = 0.0, 0.0, 0.0, 1.0
+                pose = type("P", (), {"translation": self.pose[0], "quaternion": np.array([x, y, z, w])})
+                return type("S", (), {"pose": type("E", (), {"end_effector_pose": pose})})
+
+        self.Robot, self.Gripper = Robot, Gripper
+
+
+def test_a_real_reset_lifts_first_and_waits_for_the_operator_before_the_gripper_opens(monkeypatch):
+    """The hand may hold the pot in the air when an episode times out: the reset goes straight up (inside the
+    box) before the joint motion sweeps the arm home, and on hardware waits for the operator (Enter) before
+    it opens the gripper, from the second episode on."""
+    from ddp.envs.franka import real
+
+    franky = _FakeFranky()
+    monkeypatch.setattr(real, "_import_franky", lambda: franky)
+    backend = real.FrankyBackend(RealBackendConfig(), cameras={})
+    asked = []
+    backend.confirm = lambda message: (asked.append(message), franky.events.append(("operator",)))
+    backend.reset()
+    kinds = [e[0] for e in franky.events]
+    assert kinds == ["cartesian", "gripper", "joint"] and asked == []  # the first episode: set up beforehand
+    np.testing.assert_allclose(franky.events[0][1], [0.5, 0.0, 0.10])  # 8 cm straight up
+    franky.events.clear()
+    backend.reset()
+    assert [e[0] for e in franky.events] == ["cartesian", "operator", "gripper", "joint"]
+    assert "take what the gripper holds" in asked[0]
+    quiet = real.FrankyBackend(RealBackendConfig(operator_reset=False, reset_lift=0.0), cameras={})
+    franky.events.clear()
+    quiet.reset()
+    quiet.reset()
+    assert [e[0] for e in franky.events] == ["gripper", "joint", "gripper", "joint"]
+    monkeypatch.setattr("builtins.input", lambda prompt: (_ for _ in ()).throw(EOFError()))
+    with pytest.raises(RuntimeError, match="no terminal to read Enter from; set env.real.operator_reset=false"):
+        real.FrankyBackend.confirm("go")
+
+
 def test_missing_extras_name_the_install(monkeypatch):
     from ddp.envs.franka import cameras, real
 
@@ -413,6 +516,12 @@ def test_backend_against_franky_sim(franky_sim, record_property):
         _settle(backend)
         assert np.linalg.norm(backend.ee_pose()[0] - start) <= backend.config.max_step_translation + 2e-3
         assert backend.limited_steps >= 1
+        # what a tracking shift counts as executed: targets beyond the reach are pulled back, inside the box
+        far = backend.reachable(np.array([0.8, 0.45, 0.3]), q0)
+        assert np.all(far <= np.asarray(backend.config.workspace_high) + 1e-9)
+        assert np.linalg.norm(far - [0.8, 0.45, 0.3]) > 0.01  # 0.8 m out at the box corner: beyond max_reach
+        near = start + np.array([0.0, 0.02, 0.0])
+        np.testing.assert_allclose(backend.reachable(near, q0), near)  # within reach: unchanged
 
         latency = float(np.median(latencies[2:]))
         print(f"move_to per step {per_step * 1e3:.1f} ms; depth frame over the socket {latency * 1e3:.1f} ms")

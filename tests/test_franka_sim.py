@@ -120,6 +120,43 @@ def test_control_clips_translation_rotation_and_workspace():
     assert len(backend.moves) == moves and backend.grip == [True]
 
 
+def test_a_shift_counts_what_the_backend_can_reach_as_applied():
+    """A real arm pulls targets beyond its reach back (RealBackendConfig.max_reach): the shift's applied
+    amount, which the recovery undoes, is what the arm holds, not what was asked."""
+    backend = _FakeBackend()
+    backend.reachable = lambda position, quaternion: np.minimum(position, [0.5, 1.0, 1.0])  # x at most 0.5
+    ctl = FrankaControl(backend, workspace_low=(0.2, -0.4, 0.0), workspace_high=(0.7, 0.4, 0.5))
+    ctl.reset()
+    applied = ctl.shift([0.25, 0.05, 0.0])
+    np.testing.assert_allclose(applied, [0.1, 0.05, 0.0])  # asked 0.25 in x; x = 0.4 + 0.1 is as far as it goes
+    np.testing.assert_allclose(ctl.target_pos, [0.5, 0.05, 0.3])
+    assert all(m[0][0] <= 0.5 + 1e-12 for m in backend.moves)
+
+
+def test_the_orientation_stays_within_max_tilt_of_the_home_pose():
+    """Per-step rotation limits alone let a steady bias turn the hand without bound (30 chunks of a small roll
+    wind the wrist past its limits); the commanded orientation stops at max_tilt from the reset's."""
+    from ddp.envs.franka.control import rotation_angle
+
+    backend = _FakeBackend()
+    ctl = FrankaControl(backend, workspace_low=(0.2, -0.4, 0.0), workspace_high=(0.7, 0.4, 0.5), max_tilt=1.0)
+    ctl.reset()
+    for _ in range(100):  # 100 x 0.1 rad about x: 10 rad asked for
+        ctl.step([0, 0, 0, 0.1, 0, 0, -1.0])
+    _, quat = backend.moves[-1]
+    assert rotation_angle(DOWN, quat_to_mat(quat)) == pytest.approx(1.0, abs=1e-6)
+    # on the way: the rotation toward the limit is the one asked for (about base x)
+    np.testing.assert_allclose(quat_to_mat(quat), rotvec_to_mat([1.0, 0, 0]) @ DOWN, atol=1e-6)
+    for _ in range(5):  # turning back is free
+        ctl.step([0, 0, 0, -0.1, 0, 0, -1.0])
+    assert rotation_angle(DOWN, quat_to_mat(backend.moves[-1][1])) == pytest.approx(0.5, abs=1e-6)
+    with pytest.raises(ValueError, match="max_tilt must be at most pi"):
+        FrankaControl(backend, workspace_low=(0.2, -0.4, 0.0), workspace_high=(0.7, 0.4, 0.5), max_tilt=4.0)
+    with pytest.raises(ValueError, match="max_tilt must be in"):
+        FrankaEnvConfig(task="press", max_tilt=float("nan"))
+    assert FrankaEnvConfig(task="pour").max_tilt == pytest.approx(2.4)  # pour's demos turn up to 121 degrees
+
+
 # ------------------------------------------------------------------------------------- with the simulator
 @pytest.fixture(scope="module")
 def envs():

@@ -82,6 +82,12 @@ class FrankaBackend(abc.ABC):
     def render(self, camera: str) -> CameraFrame:
         """The latest frame of a named camera (``"policy"``: the point-cloud camera; ``"tracking"``)."""
 
+    def reachable(self, position: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
+        """Where the backend would hold the end-effector for a target at ``position`` (with orientation
+        ``quaternion``): ``position`` itself, unless the backend pulls targets back (a real arm's reach);
+        a tracking shift counts what this gives as executed."""
+        return np.asarray(position, dtype=np.float64)
+
     def object_positions(self) -> np.ndarray | None:
         """True object positions ``[K, 3]`` in ``object_names`` order where known (simulation), else None."""
         return None

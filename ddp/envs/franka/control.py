@@ -16,7 +16,10 @@ tracking lag, as a blocking real robot would also reach them), keeps that
 target within ``max_lead`` metres / ``max_rotation_lead`` radians of the
 measured pose (so that pushing against an obstacle cannot wind the target up
 without bound: the contact force stays bounded), clips the position to the
-workspace box and sends the absolute target to ``backend.move_to``. The gripper
+workspace box, keeps the orientation within ``max_tilt`` radians of the one at
+reset (the home pose: per-step limits alone let a small bias wind the wrist past
+its joint limits or tilt the hand into the table over a few chunks) and sends the
+absolute target to ``backend.move_to``. The gripper
 command goes to ``backend.set_gripper`` only when it changes.
 
 Quaternions are ``[w, x, y, z]``; rotation matrices act on column vectors.
@@ -148,6 +151,8 @@ class FrankaControl:
         max_rotation: radians per step and axis.
         max_lead: metres the commanded target may lead the measured end-effector position.
         max_rotation_lead: radians the commanded orientation may lead the measured one.
+        max_tilt: radians the commanded orientation may turn away from the one at :meth:`reset` (the
+            oracle demos turn at most 121 degrees, pouring; the default allows 137.5).
     """
 
     def __init__(
@@ -160,6 +165,7 @@ class FrankaControl:
         max_rotation: float = 0.1,
         max_lead: float = 0.03,
         max_rotation_lead: float = 0.3,
+        max_tilt: float = 2.4,
     ):
         self.backend = backend
         self.low = np.asarray(workspace_low, dtype=np.float64)
@@ -170,9 +176,13 @@ class FrankaControl:
                 f"workspace_low must be below workspace_high on x, y, z; got {workspace_low}, {workspace_high}"
             )
         for name, value in (("max_translation", max_translation), ("max_rotation", max_rotation),
-                            ("max_lead", max_lead), ("max_rotation_lead", max_rotation_lead)):
+                            ("max_lead", max_lead), ("max_rotation_lead", max_rotation_lead),
+                            ("max_tilt", max_tilt)):
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0; got {value}")
+        if max_tilt > np.pi:
+            raise ValueError(f"max_tilt must be at most pi (no bound beyond it); got {max_tilt}")
+        self.max_tilt = float(max_tilt)
         self.max_translation = float(max_translation)
         self.max_rotation = float(max_rotation)
         self.max_lead = float(max_lead)
@@ -181,6 +191,7 @@ class FrankaControl:
         self.action_high = -self.action_low
         self.target_pos = np.zeros(3)
         self.target_rot = np.eye(3)
+        self.home_rot = np.eye(3)  # the orientation at reset, which max_tilt is measured from
         self.gripper_closed: bool | None = None
 
     def reset(self) -> None:
@@ -188,6 +199,7 @@ class FrankaControl:
         pos, quat = self.backend.ee_pose()
         self.target_pos = np.asarray(pos, dtype=np.float64).copy()
         self.target_rot = quat_to_mat(quat)
+        self.home_rot = self.target_rot.copy()
         self.gripper_closed = False
 
     def clip_action(self, action) -> np.ndarray:
@@ -210,7 +222,15 @@ class FrankaControl:
         target_rot = delta @ self.target_rot
         if rotation_angle(rot, target_rot) > self.max_rotation_lead:
             target_rot = delta @ rot
-        return target, target_rot
+        return target, self._within_tilt(target_rot)
+
+    def _within_tilt(self, target_rot: np.ndarray) -> np.ndarray:
+        """``target_rot``, or the rotation on the way to it from the home orientation at ``max_tilt``."""
+        away = mat_to_rotvec(target_rot @ self.home_rot.T)  # base frame, as the actions' rotations
+        angle = float(np.linalg.norm(away))
+        if angle <= self.max_tilt:
+            return target_rot
+        return rotvec_to_mat(away * (self.max_tilt / angle)) @ self.home_rot
 
     def step(self, action) -> np.ndarray:
         """Execute one action (one ``control_period``); returns the executed (clipped) action."""
@@ -233,17 +253,24 @@ class FrankaControl:
         ``safe_lift > 0`` the move goes up by ``safe_lift``, across, and down
         again. Each phase sends the backend up to ``max_steps`` control periods
         toward its waypoint (fewer once within ``tolerance``). Returns the shift
-        of the commanded target actually applied (after clipping).
+        of the commanded target actually applied (after clipping to the workspace
+        and to what the backend can reach: ``backend.reachable``).
         """
         delta = np.asarray(delta, dtype=np.float64).reshape(3)
         require_finite("end-effector shift", delta, "franka control")
         start = self.target_pos.copy()
-        goal = np.clip(start + delta, self.low, self.high)
+        quat = mat_to_quat(self.target_rot)
+        reach = getattr(self.backend, "reachable", None)
+
+        def held(point: np.ndarray) -> np.ndarray:  # where the arm would hold a target at ``point``
+            point = np.clip(point, self.low, self.high)
+            return np.clip(np.asarray(reach(point, quat), dtype=np.float64), self.low, self.high) if reach else point
+
+        goal = held(start + delta)
         waypoints = [goal]
         if safe_lift > 0.0:
             lift = np.array([0.0, 0.0, safe_lift])
-            waypoints = [np.clip(start + lift, self.low, self.high), np.clip(goal + lift, self.low, self.high), goal]
-        quat = mat_to_quat(self.target_rot)
+            waypoints = [held(start + lift), held(goal + lift), goal]
         for waypoint in waypoints:
             for _ in range(max_steps):
                 pos, _ = self.backend.ee_pose()

@@ -73,7 +73,7 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 from dataclasses import dataclass, field  # noqa: E402
-from typing import Literal  # noqa: E402
+from typing import ClassVar, Literal  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -128,6 +128,7 @@ class FrankaEnvConfig(ObservationOptions):
         max_translation: metres per action and axis.
         max_rotation: radians per action and axis.
         max_lead: metres the commanded target may lead the measured end-effector.
+        max_tilt: radians the commanded orientation may turn away from the home pose's (the reset's).
         workspace_min, workspace_max: base-frame box of end-effector targets.
         kp: OSC stiffness of the simulated arm.
         real: options of the hardware backend (read by ``make_real_backend``).
@@ -160,10 +161,13 @@ class FrankaEnvConfig(ObservationOptions):
     max_translation: float = 0.02
     max_rotation: float = 0.1
     max_lead: float = 0.03
+    max_tilt: float = 2.4
     workspace_min: Vec3 = (0.2, -0.45, 0.0)
     workspace_max: Vec3 = (0.8, 0.45, 0.5)
     kp: float = 300.0
     real: dict = field(default_factory=dict)
+    #: options added after demos were cached: at these values a cache's key is as before (ddp.data.cached_demos)
+    cache_neutral_defaults: ClassVar[dict] = {"max_tilt": 2.4}
 
     def __post_init__(self):
         if self.task not in TASKS:
@@ -211,6 +215,8 @@ class FrankaEnvConfig(ObservationOptions):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0; got {value}")
+        if not (math.isfinite(self.max_tilt) and 0 < self.max_tilt <= math.pi):
+            raise ValueError(f"max_tilt must be in (0, pi] radians; got {self.max_tilt}")
         rows = len(TASKS[self.task].displacements)
         for name in ("displacement_chunks", "displacement_deltas"):
             value = getattr(self, name)
@@ -315,6 +321,7 @@ class FrankaEnv(PointCloudEnv):
         self.control = FrankaControl(
             backend, workspace_low=low, workspace_high=high,
             max_translation=cfg.max_translation, max_rotation=cfg.max_rotation, max_lead=cfg.max_lead,
+            max_tilt=cfg.max_tilt,
         )  # fmt: skip
         self._plan = cfg.displacement_schedule()
         lo, hi = cfg.crop_box

@@ -61,6 +61,9 @@ INSTALL_HINT = "pip install 'ddp[real]'"
 #: FR3 / Panda joints with the Franka Hand's TCP at (0.4, 0, 0.3) pointing down: the tasks' home
 #: (``FrankaTask.home``), so the Cartesian move after the joint motion is short
 DEFAULT_HOME = (0.0, -0.4165, 0.0, -2.5796, 0.0, 2.1639, 0.7854)
+#: the Panda's joint limits (radians; Franka's datasheet), which home_joints must lie within
+JOINT_LIMITS = ((-2.8973, 2.8973), (-1.7628, 1.7628), (-2.8973, 2.8973), (-3.0718, -0.0698), (-2.8973, 2.8973),
+                (-0.0175, 3.7525), (-2.8973, 2.8973))
 #: the shoulder (joints 2) in the base frame, and the wrist centre's distance behind the Franka Hand's
 #: TCP (0.1034 m flange to TCP + 0.107 m wrist to flange)
 SHOULDER = np.array([0.0, 0.0, 0.333])
@@ -128,23 +131,37 @@ class RealBackendConfig:
     realtime: bool | None = None
     #: the env's object order (privileged positions from franky-sim); empty: the server's order
     object_names: tuple[str, ...] = ()
+    #: metres the hand rises straight up (inside the box) at a reset before the joint motion home, so that
+    #: the way home does not sweep through what is on the table
+    reset_lift: float = 0.08
+    #: on hardware (no franky-sim scene), every reset after the first waits for the operator (Enter on the
+    #: terminal) before the gripper opens: take what the hand holds, set the scene up for the next episode
+    operator_reset: bool = True
 
     def __post_init__(self):
         p = "env.real"
         check_choices(self, f"{p}.")
         if not 0.0 < float(self.dynamics_factor) <= 1.0:
             raise ValueError(f"{p}.dynamics_factor must be in (0, 1]; got {self.dynamics_factor}")
-        if not float(self.control_period) > 0.0:
-            raise ValueError(f"{p}.control_period must be positive; got {self.control_period}")
         low, high = np.asarray(self.workspace_low, float), np.asarray(self.workspace_high, float)
-        if low.shape != (3,) or high.shape != (3,) or not np.all(low < high):
+        if low.shape != (3,) or high.shape != (3,) or not np.all(np.isfinite([*low, *high])) or not np.all(low < high):
             raise ValueError(
-                f"{p}.workspace_low/high must be 3 numbers each with low < high; got {list(self.workspace_low)}, "
+                f"{p}.workspace_low/high must be 3 finite numbers each with low < high; got {list(self.workspace_low)}, "
                 f"{list(self.workspace_high)}"
             )
-        for key in ("max_step_translation", "max_step_rotation", "gripper_speed", "gripper_force"):
-            if not float(getattr(self, key)) > 0.0:
-                raise ValueError(f"{p}.{key} must be positive; got {getattr(self, key)}")
+        # inf would switch a limit off (a step of any size, an endless sleep), NaN every comparison
+        for key in ("control_period", "max_step_translation", "max_step_rotation", "gripper_speed", "gripper_force",
+                    "collision_torque", "collision_force", "franky_sim_wait"):
+            value = float(getattr(self, key))
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{p}.{key} must be a finite number > 0; got {getattr(self, key)}")
+        if not (math.isfinite(float(self.reset_lift)) and float(self.reset_lift) >= 0.0):
+            raise ValueError(f"{p}.reset_lift must be a finite number >= 0 (metres); got {self.reset_lift}")
+        if self.max_reach is not None and not (math.isfinite(float(self.max_reach)) and 0.0 < float(self.max_reach) <= 0.855):
+            raise ValueError(f"{p}.max_reach must be in (0, 0.855] metres (the Panda's reach) or null; got {self.max_reach}")
+        if self.gripper_open_width is not None and not (math.isfinite(float(self.gripper_open_width))
+                                                        and 0.0 < float(self.gripper_open_width) <= 0.08):
+            raise ValueError(f"{p}.gripper_open_width must be in (0, 0.08] metres or null; got {self.gripper_open_width}")
         if self.home_position is not None:
             home = np.asarray(self.home_position, dtype=float)
             if home.shape != (3,) or np.any(home < low) or np.any(home > high):
@@ -155,6 +172,9 @@ class RealBackendConfig:
         self.home_quaternion = tuple(_qnormalize(np.asarray(self.home_quaternion)).tolist())
         if len(tuple(self.home_joints)) != 7:
             raise ValueError(f"{p}.home_joints must have 7 joint angles; got {len(tuple(self.home_joints))}")
+        for i, (q, (lo, hi)) in enumerate(zip(self.home_joints, JOINT_LIMITS)):
+            if not (math.isfinite(float(q)) and lo <= float(q) <= hi):
+                raise ValueError(f"{p}.home_joints[{i}] must be within the joint's limits [{lo}, {hi}] rad; got {q}")
         if self.cameras is not None and not isinstance(self.cameras, Mapping):
             raise ValueError(f"{p}.cameras must map camera names to sources; got {type(self.cameras).__name__}")
         self.workspace_low, self.workspace_high = tuple(low.tolist()), tuple(high.tolist())
@@ -328,6 +348,7 @@ class FrankyBackend(FrankaBackend):
         self._low = np.asarray(config.workspace_low)
         self._high = np.asarray(config.workspace_high)
         self.limited_steps = 0  # how many targets the safety limits changed (a diagnostic)
+        self._episodes = 0  # resets so far (the operator is asked from the second on)
         if scene is not None:
             server_names = tuple(scene.object_names)
             names = config.object_names or server_names
@@ -387,6 +408,12 @@ class FrankyBackend(FrankaBackend):
         if remaining > 0:
             time.sleep(remaining)
 
+    def reachable(self, position: np.ndarray, quaternion: np.ndarray) -> np.ndarray:
+        """``position`` inside this backend's box and the arm's reach, as :meth:`move_to` would hold it."""
+        pos, _, _ = limit_target(position, quaternion, position, quaternion, self._low, self._high,
+                                 np.inf, np.inf, self.config.max_reach)
+        return pos
+
     def move_relative(self, delta_position: np.ndarray, delta_rotation: np.ndarray | None = None) -> None:
         """Move by a BASE-frame delta (metres; rotation vector in radians, applied in the base frame)."""
         cur_p, cur_q = self.ee_pose()
@@ -423,18 +450,32 @@ class FrankyBackend(FrankaBackend):
 
     # ---- episode ----
     def reset(self, object_positions: dict[str, np.ndarray] | None = None, home: bool = True) -> None:
+        """Lift the hand straight up (``reset_lift``, inside the box), on hardware wait for the operator
+        (``operator_reset``, every reset after the first), open the gripper, then the joint motion home."""
         franky = self.franky
+        cfg = self.config
         try:
             self.robot.join_motion(5.0)
         except Exception:
             pass
         if self.robot.has_errors:
             self.robot.recover_from_errors()
+        if home and cfg.reset_lift > 0.0:  # clear of the table before the joint motion sweeps the arm home
+            pos, quat = self.ee_pose()
+            up = np.clip(pos + [0.0, 0.0, cfg.reset_lift], self._low, self._high)
+            up[:2] = pos[:2]  # straight up (a hand outside the box's x-y is not dragged into it sideways)
+            try:
+                self.robot.move(franky.CartesianMotion(self._affine(up, quat), franky.ReferenceType.Absolute))
+            except Exception as exc:
+                self._raise_motion_error(exc)
+        if self.scene is None and cfg.operator_reset and self._episodes > 0:
+            self.confirm("reset: take what the gripper holds and set up the scene for the next episode; the "
+                         "gripper then opens and the arm goes home. Press Enter to go on")
+        self._episodes += 1
         self._gripper_closed = None
         self.set_gripper(False)
         self._wait_gripper()
         if home:
-            cfg = self.config
             try:
                 self.robot.move(franky.JointMotion(list(cfg.home_joints)))
                 if cfg.home_position is not None:
@@ -453,6 +494,17 @@ class FrankyBackend(FrankaBackend):
             self.scene.place(positions)
         elif object_positions:
             log.info("real robot: place the objects by hand; object_positions ignored")
+
+    @staticmethod
+    def confirm(message: str) -> None:
+        """Wait for the operator: ``message`` and Enter on the terminal (a process without one gets a one-line
+        error naming ``env.real.operator_reset``)."""
+        try:
+            input(f"{message}: ")
+        except EOFError:
+            raise RuntimeError("the real robot waits for the operator between episodes, but this process has no "
+                               "terminal to read Enter from; set env.real.operator_reset=false to reset "
+                               "unattended") from None
 
     def render(self, camera: str) -> CameraFrame:
         if camera not in self.cameras:
