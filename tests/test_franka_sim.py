@@ -120,6 +120,28 @@ def test_control_clips_translation_rotation_and_workspace():
     assert len(backend.moves) == moves and backend.grip == [True]
 
 
+def test_a_real_cameras_frame_with_nothing_in_the_crop_box_is_an_error_not_a_constant_cloud():
+    """A dead depth stream, or an inverted cam_to_base that puts every point behind the camera: a simulated
+    view may be empty (the box's centre stands in), a real camera's stops the episode with one line."""
+    from ddp.envs.franka.backend import CameraFrame
+    from ddp.envs.franka.pointcloud import FrameToCloud
+
+    k = np.array([[100.0, 0, 16], [0, 100.0, 12], [0, 0, 1]])
+    looking_down = np.eye(4)
+    looking_down[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    looking_down[:3, 3] = [0.5, 0.0, 1.0]
+    table = CameraFrame(depth=np.full((24, 32), 0.95, np.float32), intrinsics=k, cam_to_world=looking_down)
+    inverted = dataclasses.replace(table, cam_to_world=np.linalg.inv(looking_down))
+    box = dict(crop_low=(0.3, -0.3, 0.01), crop_high=(0.7, 0.3, 0.3))
+    rng = np.random.default_rng(0)
+    cloud = FrameToCloud(16, 0, **box, on_empty="raise")(table, rng)  # 5 cm above the table top: in the box
+    assert cloud.shape == (16, 3) and np.all(cloud[:, 2] > 0.01)
+    with pytest.raises(RuntimeError, match=r"no point in the crop box .* \(768 pixels with a depth return\): check "
+                                           "the camera's depth stream, its cam_to_base calibration"):
+        FrameToCloud(16, 0, **box, on_empty="raise")(inverted, rng)
+    np.testing.assert_allclose(FrameToCloud(16, 0, **box)(inverted, rng), [[0.5, 0.0, 0.155]] * 16, atol=1e-6)
+
+
 def test_a_shift_counts_what_the_backend_can_reach_as_applied():
     """A real arm pulls targets beyond its reach back (RealBackendConfig.max_reach): the shift's applied
     amount, which the recovery undoes, is what the arm holds, not what was asked."""
@@ -131,6 +153,30 @@ def test_a_shift_counts_what_the_backend_can_reach_as_applied():
     np.testing.assert_allclose(applied, [0.1, 0.05, 0.0])  # asked 0.25 in x; x = 0.4 + 0.1 is as far as it goes
     np.testing.assert_allclose(ctl.target_pos, [0.5, 0.05, 0.3])
     assert all(m[0][0] <= 0.5 + 1e-12 for m in backend.moves)
+
+
+def test_a_shift_whose_lift_is_blocked_does_not_move_across():
+    """safe_lift exists so that the hand does not drag through the scene: a lift that stops short (blocked, or
+    too slow) cancels the move across, and the applied shift, which the recovery undoes, is zero."""
+    backend = _FakeBackend()
+    real_move = backend.move_to
+
+    def blocked_above(position, quaternion):  # something above the hand: z cannot pass 0.31
+        real_move(np.minimum(position, [1.0, 1.0, 0.31]), quaternion)
+
+    backend.move_to = blocked_above
+    ctl = FrankaControl(backend, workspace_low=(0.2, -0.4, 0.0), workspace_high=(0.7, 0.4, 0.5))
+    ctl.reset()
+    with pytest.warns(RuntimeWarning, match="lift stopped 0.040 m short of its height; the shift is not applied"):
+        applied = ctl.shift([0.0, 0.1, 0.0], safe_lift=0.05, max_steps=10)
+    np.testing.assert_allclose(applied, 0.0)
+    assert max(abs(m[0][1]) for m in backend.moves) < 1e-12  # never moved across
+    np.testing.assert_allclose(backend.pos, [0.4, 0.0, 0.3])  # back down where it started
+    free = _FakeBackend()
+    ctl = FrankaControl(free, workspace_low=(0.2, -0.4, 0.0), workspace_high=(0.7, 0.4, 0.5))
+    ctl.reset()
+    np.testing.assert_allclose(ctl.shift([0.0, 0.1, 0.0], safe_lift=0.05), [0.0, 0.1, 0.0])
+    assert max(m[0][2] for m in free.moves) == pytest.approx(0.35)  # up, across, down
 
 
 def test_the_orientation_stays_within_max_tilt_of_the_home_pose():

@@ -46,6 +46,7 @@ __all__ = [
 ]
 
 ACTION_DIM = 7
+LIFT_SLACK = 0.02  # metres: a shift's lift that stops farther below its height cancels the move across
 AGENT_POS_DIM = 15  # ee (3), left fingertip (3), right fingertip (3), 6-d rotation (6)
 
 
@@ -246,15 +247,31 @@ class FrankaControl:
         self.backend.move_to(self.target_pos.copy(), quat)
         return a
 
+    def _approach(self, waypoint: np.ndarray, quat: np.ndarray, max_steps: int, tolerance: float) -> None:
+        """Up to ``max_steps`` control periods toward ``waypoint``, in bounded increments (so that the arm, and
+        what it holds, moves smoothly), fewer once within ``tolerance``."""
+        for _ in range(max_steps):
+            pos, _ = self.backend.ee_pose()
+            step = waypoint - np.asarray(pos)
+            dist = float(np.linalg.norm(step))
+            if dist < tolerance:
+                break
+            command = np.clip(pos + step * min(1.0, self.max_lead / max(dist, 1e-9)), self.low, self.high)
+            require_finite("shift target", command, "franka control")
+            self.backend.move_to(command, quat)
+
     def shift(self, delta, *, safe_lift: float = 0.0, max_steps: int = 40, tolerance: float = 0.005) -> np.ndarray:
         """Move the end-effector by ``delta`` (base frame) with the orientation and gripper unchanged.
 
         The commanded target moves by ``delta`` (clipped to the workspace); with
         ``safe_lift > 0`` the move goes up by ``safe_lift``, across, and down
         again. Each phase sends the backend up to ``max_steps`` control periods
-        toward its waypoint (fewer once within ``tolerance``). Returns the shift
-        of the commanded target actually applied (after clipping to the workspace
-        and to what the backend can reach: ``backend.reachable``).
+        toward its waypoint (fewer once within ``tolerance``). A lift that does not
+        get within ``LIFT_SLACK`` of its height (blocked, or too slow) cancels the
+        move across, which would drag the hand low through what is on the table: the
+        hand goes back down and the shift is not applied (a warning says so). Returns
+        the shift of the commanded target actually applied (after clipping to the
+        workspace and to what the backend can reach: ``backend.reachable``).
         """
         delta = np.asarray(delta, dtype=np.float64).reshape(3)
         require_finite("end-effector shift", delta, "franka control")
@@ -271,17 +288,18 @@ class FrankaControl:
         if safe_lift > 0.0:
             lift = np.array([0.0, 0.0, safe_lift])
             waypoints = [held(start + lift), held(goal + lift), goal]
-        for waypoint in waypoints:
-            for _ in range(max_steps):
-                pos, _ = self.backend.ee_pose()
-                step = waypoint - np.asarray(pos)
-                dist = float(np.linalg.norm(step))
-                if dist < tolerance:
+        for i, waypoint in enumerate(waypoints):
+            self._approach(waypoint, quat, max_steps, tolerance)
+            if i == 0 and len(waypoints) > 1:
+                short = float(waypoint[2] - np.asarray(self.backend.ee_pose()[0])[2])
+                if short > LIFT_SLACK:  # not up: moving across now would drag the hand through the scene
+                    import warnings
+
+                    warnings.warn(f"franka control: the shift's {safe_lift:.3f} m lift stopped {short:.3f} m short "
+                                  "of its height; the shift is not applied", RuntimeWarning, stacklevel=2)
+                    goal = start
+                    self._approach(goal, quat, max_steps, tolerance)
                     break
-                # approach in bounded increments so that the arm (and what it holds) moves smoothly
-                command = np.clip(pos + step * min(1.0, self.max_lead / max(dist, 1e-9)), self.low, self.high)
-                require_finite("shift target", command, "franka control")
-                self.backend.move_to(command, quat)
         self.target_pos = goal
         self.backend.move_to(goal.copy(), quat)
         return goal - start

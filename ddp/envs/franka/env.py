@@ -325,7 +325,8 @@ class FrankaEnv(PointCloudEnv):
         )  # fmt: skip
         self._plan = cfg.displacement_schedule()
         lo, hi = cfg.crop_box
-        self._cloud_fn = FrameToCloud(cfg.num_points, cfg.presample, lo, hi)
+        self._cloud_fn = FrameToCloud(cfg.num_points, cfg.presample, lo, hi,
+                                      on_empty="centre" if self._is_sim else "raise")
         k = len(self._task.object_names)
         self._tracking: dict[str, np.ndarray] | None = None
         self._displacement = np.zeros((k, 3))

@@ -48,11 +48,17 @@ class FrameToCloud:
         num_points: points after farthest point sampling (paper: 2048).
         presample: random sub-sample size before FPS (paper: 10,000; 0 = none).
         crop_low, crop_high: base-frame box kept.
+        on_empty: a frame with no point in the box gives ``"centre"`` (``num_points`` copies of the box's
+            centre: a simulated view can be empty) or ``"raise"`` (a real camera's: a dead depth stream or a
+            wrong ``cam_to_base`` would otherwise drive the robot from a featureless cloud).
     """
 
-    def __init__(self, num_points: int, presample: int, crop_low, crop_high):
+    def __init__(self, num_points: int, presample: int, crop_low, crop_high, on_empty: str = "centre"):
         if num_points < 1:
             raise ValueError(f"num_points must be >= 1; got {num_points}")
+        if on_empty not in ("centre", "raise"):
+            raise ValueError(f"on_empty must be 'centre' or 'raise'; got {on_empty!r}")
+        self.on_empty = on_empty
         self.num_points = int(num_points)
         self.presample = int(presample)
         self.crop_low = np.asarray(crop_low, dtype=np.float32)
@@ -70,6 +76,11 @@ class FrameToCloud:
 
     def __call__(self, frame: CameraFrame, rng: np.random.Generator) -> np.ndarray:
         pts = self.points(frame)
+        if pts.shape[0] == 0 and self.on_empty == "raise":
+            returns = int((np.asarray(frame.depth) > 0).sum())
+            raise RuntimeError(f"the policy camera's frame has no point in the crop box {self.crop_low.tolist()}.."
+                               f"{self.crop_high.tolist()} ({returns} pixels with a depth return): check the camera's "
+                               "depth stream, its cam_to_base calibration and env.crop_min / crop_max")
         if pts.shape[0] == 0:
             centre = 0.5 * (self.crop_low + self.crop_high)
             return np.repeat(centre[None], self.num_points, axis=0).astype(np.float32)
