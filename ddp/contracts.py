@@ -138,6 +138,10 @@ class Env(Protocol):
     repeat across seeds); a detector's calibration rollouts use them unless ``eval.calibration_env`` is set.
     With ``initial_states_per_draw`` (an int: seeds that far apart repeat a state), calibration seeds move to
     ``block`` 1, 2, ... every that many seeds, each block a draw that repeats none of the others.
+    ``simulator_truth() -> bool``: False where the ``("privileged", ...)`` keys (object displacements,
+    occlusion) carry no truth (a real robot); detectors and trackers that read them are then refused.
+    ``judges_success() -> bool``: False where the env's ``success`` flag means nothing (a real robot: a person
+    judges); evaluations then report success as not judged (None), not as 0 %.
     """
 
     action_hold: Any  # ddp.safety.HoldSpec: how its actions hold still (controller.on_nonfinite: hold)

@@ -13,9 +13,10 @@ def protocol_result(episodes: list[dict], *, seconds: float, thresholds: dict, v
                     detection: dict | None = None, detector: dict | None = None) -> dict:
     """One protocol's entry in results.json: success rate and counts, time, the detector and its threshold,
     the detection metrics (``ddp.detection``), every episode."""
+    judged = all(r["success"] is not None for r in episodes)  # an env that cannot judge (a real robot): None
     out = {
-        "success_rate": float(np.mean([r["success"] for r in episodes])),
-        "successes": int(sum(r["success"] for r in episodes)),
+        "success_rate": float(np.mean([r["success"] for r in episodes])) if judged else None,
+        "successes": int(sum(r["success"] for r in episodes)) if judged else None,
         "episodes": len(episodes),
         "seconds": seconds,
         "detector": detector,
@@ -64,7 +65,12 @@ def markdown_table(reports: dict[str, dict]) -> str:
         cells = []
         for p in protocols:
             r = rep["protocols"].get(p)
-            cells.append("-" if r is None else f"{100 * r['success_rate']:.0f} ({r['successes']}/{r['episodes']})")
+            if r is None:
+                cells.append("-")
+            elif r["success_rate"] is None:  # a real robot's episodes: success is a person's call
+                cells.append(f"not judged ({r['episodes']} episodes)")
+            else:
+                cells.append(f"{100 * r['success_rate']:.0f} ({r['successes']}/{r['episodes']})")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -158,6 +158,8 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
     results: list[dict] = []
     done = [0] * num_envs  # episodes kept per env (one per env and batch; an env past its share runs idle)
     bar = tqdm(total=episodes, desc=desc, disable=not progress, unit="ep")
+    judges = getattr(exp.parts["env"].config, "judges_success", None)
+    judged = not callable(judges) or judges()  # a real robot's env cannot: a person judges its episodes
     try:
         for batch in collector:
             batch = batch.reshape(num_envs, chunks) if batch.batch_dims == 1 else batch
@@ -165,9 +167,12 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
                 if done[i] >= quota[i]:
                     continue
                 results.append(_summarise(batch[i], env_index=i, seed=starts[i] + done[i], latents=record_latents))
+                if not judged:  # no success to report (not False: the table says "not judged", not 0 %)
+                    results[-1].update(success=None, first_success_chunk=None)
                 done[i] += 1
                 bar.update(1)
-                bar.set_postfix(success=f"{np.mean([r['success'] for r in results]):.2f}")
+                if judged:
+                    bar.set_postfix(success=f"{np.mean([r['success'] for r in results]):.2f}")
             if len(results) >= episodes:
                 break
     finally:

@@ -116,6 +116,20 @@ class Experiment:
         self.checkpoint_path = Path(path)  # a detector calibration is saved beside it
         return self
 
+    def _check_simulator_truth(self, env_part, module, key: str) -> None:
+        """A part that reads the simulator's truth (a ``("privileged", ...)`` key: object displacements, the
+        occlusion flag) refused where the env has none (its config's ``simulator_truth()`` is False: a real
+        robot, where those keys read zero and the part would silently never fire)."""
+        truth = getattr(env_part.config, "simulator_truth", None) if env_part is not None else None
+        if module is None or not callable(truth) or truth():
+            return
+        reads = [k for k in getattr(module, "in_keys", []) if isinstance(k, tuple) and k[:1] == ("privileged",)]
+        if reads:
+            raise RecipeError(f"'{type(module).__name__}' reads the simulator's {reads[0]}, which this env does not "
+                              f"have (a real robot: it reads zero there); use a detector / tracker that works from "
+                              f"the observations (e.g. discrepancy, pointcloud, foundationpose)", source=self.source,
+                              key=key)
+
     def make_controller(self, *, detector: dict | None = None, imagine: bool | None = None,
                         track: bool | None = None, tracker: bool = True, seed: int | None = None,
                         forecast_every_cycle: bool | None = None, async_forecast: bool | None = None):
@@ -144,10 +158,14 @@ class Experiment:
             Subtask(target=s.target, trigger=self.parts[f"controller.subtasks[{i}].trigger"].build() if s.trigger else None)
             for i, s in enumerate(c.subtasks)
         ]
+        det = det_part.build()
+        trk = trk_part.build() if trk_part is not None else None
+        self._check_simulator_truth(env_part, det, "controller.detector" if detector is None else "the protocol's detector")
+        self._check_simulator_truth(env_part, trk, "controller.tracker")
         return DDPController(
             self.model.eval(),
-            detector=det_part.build(),
-            tracker=trk_part.build() if trk_part is not None else None,
+            detector=det,
+            tracker=trk,
             recovery=self.parts["controller.recovery"].build() if tracker else None,
             subtasks=subtasks,
             imagine=c.imagine if imagine is None else imagine,

@@ -15,9 +15,12 @@ def _pyplot():
     return plt
 
 
-def plot_success(report: dict, path: Path) -> Path:
+def plot_success(report: dict, path: Path) -> Path | None:
+    """Success rate per protocol; None where no protocol's success was judged (a real robot's)."""
     plt = _pyplot()
-    names = list(report["protocols"])
+    names = [n for n in report["protocols"] if report["protocols"][n]["success_rate"] is not None]
+    if not names:
+        return None
     rates = [100 * report["protocols"][n]["success_rate"] for n in names]
     fig, ax = plt.subplots(figsize=(1.2 + 1.1 * len(names), 3.2))
     bars = ax.bar(names, rates, color="#4c72b0")
@@ -68,7 +71,7 @@ def plot_report(report: dict, out_dir: Path) -> list[Path]:
         _pyplot()
     except ImportError:
         return []
-    paths = [plot_success(report, out_dir / "success.png")]
+    paths = [p for p in [plot_success(report, out_dir / "success.png")] if p is not None]
     for name, res in report["protocols"].items():
         eps = [e for e in res["per_episode"]
                if any(not math.isnan(v) for v in e.get("score", []) or e.get("discrepancy", []))]

@@ -612,3 +612,37 @@ def test_stack_episode_with_scripted_oracle(franky_sim, tmp_path, record_propert
         assert np.allclose(td["privileged", "object_pos"].numpy(), positions, atol=5e-3)
     finally:
         env.close()
+
+
+def test_parts_that_read_the_simulators_truth_are_refused_on_a_real_robot():
+    """On hardware the privileged displacement reads zero: the Franka recipes' oracle tracker would never track
+    and the oracle detector never fire, silently. Refused at build, with one line; franky-sim, whose scene
+    knows the objects, keeps them."""
+    from ddp import build
+    from ddp.errors import RecipeError
+
+    real = build("recipes/franka_stack.yaml", ["env.backend=real", "controller.detector.tau=1.0"])
+    with pytest.raises(RecipeError, match=r"controller.tracker.*reads the simulator's \('privileged', 'displacement'\)"):
+        real.make_controller()
+    with pytest.raises(RecipeError, match="the protocol's detector.*reads the simulator's"):
+        real.make_controller(detector={"name": "oracle"}, tracker=False)
+    real.make_controller(tracker=False)  # the discrepancy detector works from the observations
+    simulated = build("recipes/franka_stack.yaml", ["env.backend=real", "controller.detector.tau=1.0",
+                                                     "env.real={franky_sim_info: /tmp/fsim.json}"])
+    simulated.make_controller()
+
+
+def test_an_env_that_cannot_judge_success_reports_none_not_zero(tmp_path):
+    """A real robot's episodes: the table says 'not judged', results.json holds null, no success plot."""
+    from ddp.eval_report import markdown_table, protocol_result
+    from ddp.plots import plot_report
+
+    episodes = [{"seed": s, "success": None, "first_success_chunk": None, "chunks": 3} for s in range(4)]
+    result = protocol_result(episodes, seconds=1.0, thresholds={})
+    assert result["success_rate"] is None and result["successes"] is None and result["episodes"] == 4
+    report = {"recipe": "franka_stack", "episodes": 4, "protocols": {"id_ddp": result}}
+    assert "| franka_stack | not judged (4 episodes) |" in markdown_table({"franka_stack": report})
+    assert not (tmp_path / "success.png").exists() and plot_report(report, tmp_path) == []
+    from ddp.envs.franka.env import FrankaEnvConfig as Config
+
+    assert Config(task="stack").judges_success() and not Config(task="stack", backend="real").judges_success()

@@ -169,6 +169,16 @@ class FrankaEnvConfig(ObservationOptions):
     #: options added after demos were cached: at these values a cache's key is as before (ddp.data.cached_demos)
     cache_neutral_defaults: ClassVar[dict] = {"max_tilt": 2.4}
 
+    def judges_success(self) -> bool:
+        """Whether the env can tell a success (the task's check on the simulator's state); on a real robot
+        (franky-sim included, which shares its code path) a person judges, and evaluations report none."""
+        return self.backend == "sim"
+
+    def simulator_truth(self) -> bool:
+        """Whether the env knows the objects' true poses and displacements (robosuite, or franky-sim's scene);
+        on hardware the privileged keys read zero, so parts that read them are refused at build."""
+        return self.backend == "sim" or bool((self.real or {}).get("franky_sim_info"))
+
     def __post_init__(self):
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {', '.join(TASKS)}; got {self.task!r}{suggest(self.task, TASKS)}")
