@@ -215,6 +215,29 @@ def test_conformal_threshold_rule():
         conformal_threshold(list(range(18)), 0.05)
 
 
+def test_a_cusum_restarts_after_its_alarm_with_a_head_start_so_a_persisting_change_is_seen_again():
+    """The controller re-checks one cycle after an alarm: a CUSUM restarted at 0 needed a single chunk above
+    tau to say OOD again, so the re-check read ID while the scene stayed changed. With the tau / 2 head start
+    a persisting change reads OOD on the next chunk, an ID chunk reads ID."""
+    det = DiscrepancyDetector(DiscrepancyConfig(cusum=True, drift=1.0, tau=4.0))
+    det.cal.median = 1.0  # scores normalised by an ID median of 1
+
+    from tensordict import TensorDict
+
+    def step(score: float, chunk: int) -> bool:
+        pred = torch.full((1, 2, 4), math.sqrt(score))  # a window whose paper D_R-I is ``score``
+        td = TensorDict({("ddp", "latent_real"): torch.zeros(1, 2, 4), ("ddp", "latent_pred"): pred,
+                         "chunk_index": torch.tensor([[chunk]])}, batch_size=[1])
+        return bool(det(td)["ddp", "ood"].item())
+
+    assert [step(v, c) for c, v in enumerate([1.0, 1.0, 3.5, 3.5])] == [False, False, False, True]  # 2.5 + 2.5
+    assert step(3.5, 4)  # the move persists: 2 + 2.5 > 4, OOD on the re-check
+    assert not step(1.0, 5)  # a quiet chunk after the next alarm: 2 + 0 <= 4, ID
+    det.reset()
+    assert [step(v, c) for c, v in enumerate([1.0, 6.0])] == [False, True]
+    assert not step(1.0, 2)  # ID right after an alarm: back to reality at the re-check
+
+
 @pytest.mark.parametrize("options", [{}, {"per_chunk": True, "cusum": True}, {"whiten": True, "per_chunk": True}])
 def test_conformal_false_alarm_rate_is_alpha_on_fresh_id_episodes(options):
     """Split conformal: over calibrations, P(fresh ID episode alarms) lies in [alpha - 1/(n+1), alpha]."""

@@ -153,7 +153,10 @@ class DiscrepancyDetector(KeyedModule):
         stat = torch.tensor(stat, dtype=torch.float64)
         ood = stat > self.cal.tau  # NaN (no forecast yet) is never above
         for b in torch.nonzero(ood).reshape(-1).tolist():
-            self._acc[b] = 0.0  # a CUSUM restarts after its alarm
+            # a CUSUM restarts after its alarm with a head start of tau / 2 (the "fast initial response" CUSUM,
+            # Lucas & Crosier 1982): a change that persists alarms again on the next chunk's evidence, so the
+            # controller's re-check reads OOD (from 0 it read ID almost always); an ID chunk drains it
+            self._acc[b] = 0.5 * self.cal.tau
         shape = td.get(self.key("chunk_index")).shape[:-1] if td.batch_dims else ()
         td.set(self.key("score"), stat.float().reshape(shape))
         td.set(self.key("ood"), ood.reshape(shape))
