@@ -466,6 +466,43 @@ def test_foundationpose_geometry_from_simulator_poses(scene, mode):
     assert np.all(off[0] == 0)
 
 
+class LostTrack(SimulatorPoses):
+    """track_one that lost its object: it keeps answering the pose it last registered (FoundationPose's
+    tracker drifts that way after a fast move or an occlusion)."""
+
+    def register(self, K, rgb, depth, mask, iterations):
+        self.stale = super().register(K, rgb, depth, mask, iterations)
+        return self.stale
+
+    def track(self, K, rgb, depth, iterations):
+        self.calls.append(("track", self.k, iterations))
+        return self.stale
+
+
+def test_foundationpose_track_mode_registers_again_when_the_pose_leaves_the_objects_pixels(scene):
+    """mode: track checks each tracked pose against the object's observed points: a pose 9 cm from them (the
+    lost tracker's stale answer) is registered again from the object's mask, so the move is reported; a pose
+    that agrees is kept (no extra registration)."""
+    calls = []
+    tracker = FoundationPoseTracker(FoundationPoseTrackerConfig(num_objects=2, min_offset=0.0),
+                                    estimator_factory=lambda k: LostTrack(scene, k, calls))
+    _fp_observe(tracker, scene, 0)
+    off, vis = _fp_observe(tracker, scene, 1)  # nothing moved: the stale pose is right
+    assert np.allclose(off, 0.0, atol=1e-6) and tracker.reregistered == 0
+    scene.place(0, A0 + [0.08, -0.04, 0.0])
+    off, vis = _fp_observe(tracker, scene, 2)
+    np.testing.assert_allclose(off[0], [0.08, -0.04, 0.0], atol=1e-5)  # before: 0 (the stale pose accepted)
+    assert tracker.reregistered == 1 and calls[-3:] == [("track", 0, 2), ("register", 0, 5), ("track", 1, 2)]
+    unchecked = FoundationPoseTracker(FoundationPoseTrackerConfig(num_objects=2, min_offset=0.0, track_tolerance=None),
+                                      estimator_factory=lambda k: LostTrack(scene, k, []))
+    scene.place(0, A0)
+    _fp_observe(unchecked, scene, 0)
+    scene.place(0, A0 + [0.08, -0.04, 0.0])
+    assert np.allclose(_fp_observe(unchecked, scene, 1)[0][0], 0.0)  # the check off: the lost pose is believed
+    with pytest.raises(ValueError, match="track_tolerance must be a finite number > 0"):
+        FoundationPoseTrackerConfig(num_objects=1, track_tolerance=float("nan"))
+
+
 def test_foundationpose_default_offsets_match_the_box_displacement(scene):
     tracker = FoundationPoseTracker(FoundationPoseTrackerConfig(num_objects=2),
                                     estimator_factory=lambda k: SimulatorPoses(scene, k, []))

@@ -91,6 +91,11 @@ class FoundationPoseTrackerConfig:
     masks: Literal["auto", "mask", "geometry"] = "auto"  # registration masks: segmentation image or geometry
     isolation: IsolationConfig = field(default_factory=IsolationConfig)  # geometric masks (hardware)
     min_mask_pixels: int = 20  # fewer object pixels: not visible
+    # mode track: a tracked pose is checked against the object's observed points (segmentation mask, or the
+    # geometric cluster found near the tracked position); farther than this (m) from their centroid, or no
+    # points there, the object is registered again from its mask (track_one drifts once it loses an object:
+    # fast moves, occlusion); null: no check
+    track_tolerance: float | None = 0.05
     carried_radius: float = 0.05  # m from the end-effector; 0 disables the carried check
     ee_dims: list[int] = field(default_factory=lambda: [0, 1, 2])
     min_offset: float = 0.01  # m; smaller motions are reported as zero
@@ -104,6 +109,8 @@ class FoundationPoseTrackerConfig:
             raise ValueError("point and ee_dims must have 3 entries")
         if self.register_iterations < 1 or self.track_iterations < 1:
             raise ValueError("register_iterations and track_iterations must be >= 1")
+        if self.track_tolerance is not None and not (np.isfinite(self.track_tolerance) and self.track_tolerance > 0):
+            raise ValueError(f"track_tolerance must be a finite number > 0 (metres) or null; got {self.track_tolerance}")
 
 
 def _fail(message: str) -> PluginError:
@@ -229,6 +236,7 @@ class FoundationPoseTracker(ObjectTracker):
         self.estimators: dict[tuple[int, int], ObjectPoseEstimator] = {}
         self.states: dict[int, list] = {}
         self.point = np.asarray(config.point, dtype=np.float64)
+        self.reregistered = 0  # mode track: poses that disagreed with the observed points (a diagnostic)
 
     def reset(self):
         self.states = {}
@@ -250,6 +258,19 @@ class FoundationPoseTracker(ObjectTracker):
             m[f[1]] = True
             masks.append(m.reshape(depth.shape))
         return masks
+
+    def _agrees(self, pose, k: int, depth, K, T, seg, ee) -> bool:
+        """Whether a tracked object-in-camera ``pose`` lies within ``track_tolerance`` of the centroid of the
+        object's observed points (its segmentation pixels, or the geometric cluster found near the tracked
+        position); no points there (lost, or hidden) disagrees."""
+        if pose is None or not np.all(np.isfinite(pose)):
+            return False
+        centre = (T @ pose)[:3, 3]
+        anchors = [centre if j == k else None for j in range(self.num_objects)]
+        found = self.isolator.isolate(depth, K, T, seg, self.num_objects, ee, anchors=anchors)[k]
+        if found is None:
+            return False
+        return float(np.linalg.norm(found[0].mean(0) - centre)) <= self.config.track_tolerance
 
     def _position(self, pose_world: np.ndarray) -> np.ndarray:
         return geo.transform_points(pose_world, self.point[None])[0]
@@ -288,6 +309,12 @@ class FoundationPoseTracker(ObjectTracker):
                 pose = est.register(K, rgb, depth, masks[k], c.register_iterations) if masks[k] is not None else None
             else:
                 pose = est.track(K, rgb, depth, c.track_iterations)
+                if c.track_tolerance is not None and not self._agrees(pose, k, depth, K, T, seg, ee):
+                    # lost: registered again from the object's pixels near where it was last seen
+                    anchors = [s_.last if s_ is not None else None for s_ in states]
+                    mask = self._masks(depth, K, T, seg, ee, anchors)[k]
+                    pose = est.register(K, rgb, depth, mask, c.register_iterations) if mask is not None else None
+                    self.reregistered += 1
             disp = position = None
             if pose is not None and np.all(np.isfinite(pose)):
                 world = T @ pose  # object in base frame = camera in base frame @ object in camera
