@@ -646,3 +646,65 @@ def test_an_env_that_cannot_judge_success_reports_none_not_zero(tmp_path):
     from ddp.envs.franka.env import FrankaEnvConfig as Config
 
     assert Config(task="stack").judges_success() and not Config(task="stack", backend="real").judges_success()
+
+
+def test_a_reflex_stops_the_arm_for_the_rest_of_the_episode_not_the_evaluation():
+    """franky's collision reflex (RobotMotionError) ended the whole evaluation; now the arm holds still for the
+    rest of that episode (no more motion commands, shifts apply nothing), task_info says motion_stopped, and
+    the next episode moves again."""
+    import warnings
+
+    import torch
+    from tensordict import TensorDict
+
+    from ddp.envs.franka.backend import CameraFrame, FrankaBackend, RobotMotionError
+    from ddp.envs.franka.env import FrankaEnv
+    from ddp.envs.franka.tasks.base import DOWN
+    from ddp.envs.franka.control import mat_to_quat
+
+    class Robot(FrankaBackend):
+        def __init__(self):
+            self.pos, self.quat, self.moves, self.fail_at = np.array([0.45, 0.0, 0.2]), mat_to_quat(DOWN), 0, 3
+
+        def reset(self, object_positions=None, home=True):
+            self.pos = np.array([0.45, 0.0, 0.2])
+
+        def ee_pose(self):
+            return self.pos.copy(), self.quat.copy()
+
+        def gripper_width(self):
+            return 0.08
+
+        def move_to(self, position, quaternion):
+            self.moves += 1
+            if self.moves == self.fail_at:
+                raise RobotMotionError("the robot stopped the motion: ControlException: cartesian reflex")
+            self.pos = np.asarray(position)
+
+        def set_gripper(self, close):
+            pass
+
+        def render(self, camera):  # a table seen from 1 m above, 5 cm under the crop box's top layer
+            k = np.array([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]])
+            pose = np.eye(4)
+            pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
+            pose[:3, 3] = [0.5, 0.0, 1.0]
+            return CameraFrame(depth=np.full((24, 32), 0.97, np.float32), intrinsics=k, cam_to_world=pose)
+
+    robot = Robot()
+    cfg = FrankaEnvConfig(task="press", num_points=16, presample=0, image_height=24, image_width=32,
+                          crop_min=(0.3, -0.3, 0.01), crop_max=(0.7, 0.3, 0.3))
+    env = FrankaEnv(cfg, backend=robot)
+    env.reset(seed=0)
+    action = torch.tensor([0.01, 0, 0, 0, 0, 0, -1.0])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(6):
+            out = env.step(TensorDict({"action": action}, batch_size=[]))
+    assert any("cartesian reflex; the arm holds still for the rest of episode 0" in str(w.message) for w in caught)
+    assert robot.moves == 3  # nothing sent after the reflex
+    assert out["next", "privileged", "task_info", "motion_stopped"].item() == 1.0
+    assert np.all(env.shift_end_effector([0.02, 0.0, 0.0]) == 0.0) and robot.moves == 3
+    env.reset(seed=1)
+    env.step(TensorDict({"action": action}, batch_size=[]))
+    assert robot.moves == 4  # a new episode moves again

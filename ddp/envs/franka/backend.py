@@ -46,6 +46,10 @@ class CameraFrame:
     rgb: np.ndarray | None = None
 
 
+class RobotMotionError(RuntimeError):
+    """The robot stopped a motion (reflex, limit, planner); errors were recovered, the episode should end."""
+
+
 class FrankaBackend(abc.ABC):
     """A Franka arm + hand, its cameras and (where known) the objects' true poses."""
 

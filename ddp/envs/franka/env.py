@@ -80,6 +80,7 @@ import torch  # noqa: E402
 from torchrl.data import Bounded, Composite, Unbounded  # noqa: E402
 
 from ddp.envs.base import ObservationOptions, PointCloudEnv  # noqa: E402
+from ddp.envs.franka.backend import RobotMotionError  # noqa: E402
 from ddp.envs.disturbances import Displacement  # noqa: E402
 from ddp.envs.franka.control import ACTION_DIM, AGENT_POS_DIM, FrankaControl, agent_pos, mat_to_quat  # noqa: E402
 from ddp.envs.franka.pointcloud import FrameToCloud  # noqa: E402
@@ -343,6 +344,7 @@ class FrankaEnv(PointCloudEnv):
         self._tracked = np.zeros((len(self._plan), 3))
         self._ee_offset = np.zeros(3)
         self._task_state: dict = {}
+        self._halted = False  # a robot's reflex stopped a motion: no more motion commands this episode
         self._build_specs()
 
     # ------------------------------------------------------------- the adapter
@@ -353,9 +355,14 @@ class FrankaEnv(PointCloudEnv):
             object_pos=vec(k, 3), object_quat=vec(k, 4), displacement=vec(k, 3), ee_offset=vec(3),
             ee_target=vec(3), ee_target_quat=vec(4), seed=self._int_spec(1), step=self._int_spec(1),
         )  # fmt: skip
-        if self._task.info_keys:  # the task's diagnostics (NaN on hardware), for the evaluation's per-episode report
-            spec["task_info"] = Composite({name: vec(1) for name in self._task.info_keys}, device=self.device)
+        if self._info_keys:  # the task's diagnostics (NaN on hardware), for the evaluation's per-episode report
+            spec["task_info"] = Composite({name: vec(1) for name in self._info_keys}, device=self.device)
         return spec
+
+    @property
+    def _info_keys(self) -> tuple[str, ...]:
+        """The task's diagnostics, and on a robot ``motion_stopped`` (1: a reflex ended the episode's motion)."""
+        return tuple(self._task.info_keys) + (() if self._is_sim else ("motion_stopped",))
 
     def _extra_spec(self) -> dict:
         cfg, dev = self.config, self.device
@@ -386,6 +393,7 @@ class FrankaEnv(PointCloudEnv):
         self._tracked[:] = 0.0
         self._ee_offset[:] = 0.0
         self._task_state = self._task.new_state()
+        self._halted = False
 
     def _before_action(self, t: int) -> None:
         cfg = self.config
@@ -396,8 +404,21 @@ class FrankaEnv(PointCloudEnv):
                 self.shift_end_effector(-self._tracked[i])
                 self._tracked[i] = 0.0
 
+    def _halt(self, err: RobotMotionError) -> None:
+        """A reflex (collision, limit) stopped the arm: it holds still for the rest of the episode (no more
+        motion commands; the evaluation goes on with the next episode), reported as task_info motion_stopped."""
+        import warnings
+
+        self._halted = True
+        warnings.warn(f"franka: {err}; the arm holds still for the rest of episode {self._seed}", RuntimeWarning,
+                      stacklevel=3)
+
     def _sim_step(self, action: np.ndarray) -> tuple[float, bool]:
-        self.control.step(action)
+        if not self._halted:
+            try:
+                self.control.step(action)
+            except RobotMotionError as err:
+                self._halt(err)
         success = False  # on hardware, success is judged by a person
         if self._is_sim:
             self._task.update(self.backend, self._task_state)
@@ -425,10 +446,10 @@ class FrankaEnv(PointCloudEnv):
         }
 
     def _task_info_output(self) -> dict:
-        keys = self._task.info_keys
+        keys = self._info_keys
         if not keys:
             return {}
-        info = self.task_info()
+        info = {**self.task_info(), **({} if self._is_sim else {"motion_stopped": float(self._halted)})}
         return {"task_info": {name: self._f32([info.get(name, float("nan"))]) for name in keys}}
 
     def _render_cloud(self) -> np.ndarray:
@@ -492,7 +513,13 @@ class FrankaEnv(PointCloudEnv):
         if steps < 1:
             raise ValueError(f"settle_steps must be >= 1; got {steps}")
         held = self.backend.grasped() if self._is_sim else np.zeros(len(self._task.object_names), dtype=bool)
-        applied = self.control.shift(delta, safe_lift=safe_lift, max_steps=steps)
+        if self._halted:
+            return np.zeros(3)
+        try:
+            applied = self.control.shift(delta, safe_lift=safe_lift, max_steps=steps)
+        except RobotMotionError as err:  # stopped part-way: what the arm did is unknown, the target is not moved
+            self._halt(err)
+            return np.zeros(3)
         self._ee_offset += applied
         for k in np.flatnonzero(held):
             self._displacement[k] += applied

@@ -44,7 +44,7 @@ from typing import Any, Literal, Mapping
 import numpy as np
 
 from ddp.config import check_choices
-from ddp.envs.franka.backend import CameraFrame, FrankaBackend
+from ddp.envs.franka.backend import CameraFrame, FrankaBackend, RobotMotionError
 
 __all__ = [
     "RealBackendConfig",
@@ -68,10 +68,6 @@ JOINT_LIMITS = ((-2.8973, 2.8973), (-1.7628, 1.7628), (-2.8973, 2.8973), (-3.071
 #: TCP (0.1034 m flange to TCP + 0.107 m wrist to flange)
 SHOULDER = np.array([0.0, 0.0, 0.333])
 WRIST_OFFSET = 0.2104
-
-
-class RobotMotionError(RuntimeError):
-    """The robot stopped a motion (reflex, limit, planner); errors were recovered, the episode should end."""
 
 
 def _import_franky():
