@@ -1,8 +1,9 @@
-"""DDP against its eager DP3 baseline at the paper-sim and Simple sizes, in one process.
+"""DDP against its DP3 baseline at the paper-sim and Simple sizes, in one process.
 
 For each recipe, ``ddp.bench.compare`` times the DDP model and the same recipe with the
-world model off (the eager DP3-baseline path) one after the other, and prints obs->action,
-the full control cycle and the training step with their ratios (DDP / baseline). Numbers,
+world model off (the DP3-baseline path, same code paths otherwise) in alternating rounds, and
+prints obs->action, the full control cycle and the training step with their cost ratios (DDP /
+baseline; baseline / DDP for samples per second). Numbers,
 not assertions (issue #12's targets are ratios against this baseline).
 
     python benchmarks/ddp_vs_dp3.py --threads 2 [--repeats 5] [--train-steps 2] [--batch 32]

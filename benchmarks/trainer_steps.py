@@ -1,8 +1,11 @@
 """Milliseconds per step of the real trainer (data loading, the loss, backward, AdamW, EMA, and a
 target-table refresh where one is due), for recipes built with overrides, timed interleaved in one process.
 
-Each variant trains ``--steps`` steps from scratch into a temporary directory, round after round (a noisy
-neighbour slows every variant alike); the medians and their ratios to the first variant are printed.
+Each variant trains ``--steps`` and then ``2 x --steps`` steps from scratch into temporary directories, round
+after round (a noisy neighbour slows every variant alike); a step costs the difference of the two runs' times
+over ``--steps``, so what each run pays once (building, the first slow steps, the final checkpoint, whose size
+differs between DDP and DP3) cancels. Take ``--steps`` a multiple of ``world_model.target_refresh_every``.
+The medians and their ratios to the first variant are printed.
 Numbers, not assertions. The quickstart's demos must exist (``ddp demos recipes/metaworld/quickstart_ddp.yaml``).
 
     python benchmarks/trainer_steps.py --threads 1 --steps 80 --rounds 2 \\
@@ -34,14 +37,17 @@ def main() -> None:
     for spec in args.variants:
         label, _, rest = spec.partition("=")
         recipe, *overrides = rest.split()
-        variants[label] = (recipe, [f"train.max_steps={args.steps}", f"train.num_threads={args.threads}",
-                                    "train.logger=none", *overrides])
+        variants[label] = (recipe, [f"train.num_threads={args.threads}", "train.logger=none", *overrides])
     times = {label: [] for label in variants}
     for r in range(args.rounds):
         for label, (recipe, overrides) in variants.items():
-            with tempfile.TemporaryDirectory() as out:
-                result = build(recipe, overrides).train(output_dir=out, progress=False)
-            times[label].append(1000.0 * result.seconds / result.steps)
+            seconds = []
+            for steps in (args.steps, 2 * args.steps):
+                with tempfile.TemporaryDirectory() as out:
+                    result = build(recipe, [*overrides, f"train.max_steps={steps}"]).train(output_dir=out,
+                                                                                           progress=False)
+                seconds.append(result.seconds)
+            times[label].append(1000.0 * (seconds[1] - seconds[0]) / args.steps)
             print(f"round {r}: {label} {times[label][-1]:.1f} ms/step", flush=True)
     first = statistics.median(times[next(iter(times))])
     print(f"\n{args.threads} threads, {args.steps} steps, medians of {args.rounds} rounds")

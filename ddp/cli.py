@@ -383,7 +383,7 @@ def cmd_bench(args) -> int:
             print(f"  {k:<24} {v:10.1f}{unit}")
         return 0
     print(f"  {'stage':<24} {exp.recipe.name[:12]:>12} {'dp3_baseline':>12} {'ratio':>7}  (baseline: world model off, "
-          "same process)")
+          "same process, alternating rounds; ratio: recipe's cost / baseline's)")
     for k, (v, b, ratio) in compare(exp, repeats=args.repeats, device=args.device).items():
         cells = f"{v:12.1f} " + (f"{b:12.1f} {ratio:6.2f}x" if b is not None else f"{'-':>12} {'-':>7}")
         print(f"  {k:<24} {cells}")
@@ -438,7 +438,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="cpu or cuda")
     p.add_argument("--threads", type=int, help="torch CPU threads")
     p.add_argument("--no-baseline", action="store_true",
-                   help="time the recipe only (default: also its eager DP3 baseline, world model off, with ratios)")
+                   help="time the recipe only (default: also its DP3 baseline, world model off, in alternating rounds, with cost ratios)")
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("demos", help="generate scripted-expert demonstrations", description="Roll out the recipe's scripted expert, keep successful episodes and store them (memory-mapped) where the recipe's data section says.")

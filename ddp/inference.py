@@ -22,7 +22,8 @@ World-model forecasts use their own random stream (``seed`` + 1), apart from the
 cycle needs one (a D_R-I detector, or ``forecast_every_cycle``) it is made right after the chunk is
 chosen, and with ``async_forecast`` (the default) in a background thread while the environment
 executes the chunk: the robot waits only for encode, detect and the policy, and the results are
-those of the inline forecast exactly. Otherwise forecasts are made lazily, when imagination needs one.
+those of the inline forecast exactly (on a CPU both run single-threaded: a kernel's sums depend on
+how many threads split them). Otherwise forecasts are made lazily, when imagination needs one.
 
 An OOD flag with no displaced object to track (a false alarm, an occlusion,
 a sensor fault) is re-checked once, on the next cycle: D_R-I at or below tau
@@ -330,14 +331,16 @@ class DDPController(KeyedModule):
             samples = samples.reshape(k, history.shape[0], *samples.shape[1:])
             return samples.mean(0), samples.std(0)
 
-    def _imagine_in_background(self, history: torch.Tensor, actions: torch.Tensor):
-        """The forecast on the background thread, with torch's CPU ops single-threaded while it runs.
+    def _imagine_one_thread(self, history: torch.Tensor, actions: torch.Tensor):
+        """The forecast with torch's CPU ops single-threaded while it runs, on the background thread or inline.
 
         torch's thread count is process-wide (libgomp's global setting for threads outside OpenMP). A
         second multi-threaded OpenMP team in the process makes libgomp throttle its spinning for every
         team: measured on 2 cores, the main thread's policy then ran 1.5-2.5x slower for the rest of the
         process. With one thread here no second team exists; the count is restored when the forecast
-        ends, before the next cycle collects it (while it runs, the main thread executes the chunk).
+        ends, before the next cycle collects it (while it runs, the main thread executes the chunk). The
+        inline forecast runs single-threaded too: a CPU kernel's sums depend on how many threads split
+        them, and the two paths must give the same forecast, bit for bit.
         """
         threads = torch.get_num_threads()
         if self.device.type == "cpu" and threads > 1:
@@ -368,7 +371,7 @@ class DDPController(KeyedModule):
         """
         pending = self._pending(envs)
         if pending is not None:
-            self._store(pending[0], *self._imagine(pending[1], pending[2]))
+            self._store(pending[0], *self._imagine_one_thread(pending[1], pending[2]))
 
     def wait_forecast(self) -> None:
         """Block until the background forecast (``async_forecast``), if one is running, is done."""
@@ -393,7 +396,7 @@ class DDPController(KeyedModule):
             return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ddp-forecast")
-        self._job = (pending[0], self._pool.submit(self._imagine_in_background, pending[1], pending[2]))
+        self._job = (pending[0], self._pool.submit(self._imagine_one_thread, pending[1], pending[2]))
 
     def close(self) -> None:
         """Wait for a background forecast and stop its thread (also done when the controller is collected).

@@ -311,11 +311,28 @@ def test_tau_calibrated_from_id_rollouts_without_forecast_every_cycle(exp, tmp_p
     assert tau is not None and tau > 0
 
 
-@pytest.mark.parametrize("samples", [1, 3])
-def test_async_forecast_equals_the_inline_one(exp, samples):
+@pytest.mark.parametrize("samples, threads", [(1, 1), (3, 1), (1, 2)])
+def test_async_forecast_equals_the_inline_one(exp, samples, threads):
     """async_forecast makes the next forecast in a background thread while the chunk executes: two envs,
     one of which starts a new episode mid-way, give the same actions, forecasts and modes as the inline
-    forecast_every_cycle path (own noise stream), with the D_R-I detector and imagination in play."""
+    forecast_every_cycle path (own noise stream), with the D_R-I detector and imagination in play; also
+    with two torch threads, where the background forecast runs single-threaded and the inline one not."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        outs = _inline_and_async(exp, samples)
+    finally:
+        torch.set_num_threads(previous)
+    assert outs["inline"]["ddp", "imagined"].any()  # the comparison covers imagination
+    pred = outs["inline"]["ddp", "latent_pred"]  # [cycle, env, M, D]: NaN only before an episode's first forecast
+    assert torch.isnan(pred).flatten(2).all(-1).tolist() == [[True, True]] + [[False, False]] * 3 + [
+        [False, True]] + [[False, False]] * 2
+    for key in ("action", "ee_shift", ("ddp", "latent_pred"), ("ddp", "mode"), ("ddp", "imagined")):
+        torch.testing.assert_close(outs["async"][key], outs["inline"][key], rtol=0, atol=0, equal_nan=True)
+
+
+def _inline_and_async(exp, samples: int) -> dict:
+    """Seven cycles of two envs (one resets at cycle 4) with the inline and with the background forecast."""
     exp.recipe.controller.forecast_samples = samples
     keys = ["point_cloud", "agent_pos", "chunk_index", "privileged"]
     outs = {}
@@ -336,12 +353,7 @@ def test_async_forecast_equals_the_inline_one(exp, samples):
             obs = [envs[i].step(out[i].select("action", "ee_shift"))["next"].select(*keys) for i in range(2)]
         ctrl.close()
         outs[mode] = torch.stack(steps)
-    assert outs["inline"]["ddp", "imagined"].any()  # the comparison covers imagination
-    pred = outs["inline"]["ddp", "latent_pred"]  # [cycle, env, M, D]: NaN only before an episode's first forecast
-    assert torch.isnan(pred).flatten(2).all(-1).tolist() == [[True, True]] + [[False, False]] * 3 + [
-        [False, True]] + [[False, False]] * 2
-    for key in ("action", "ee_shift", ("ddp", "latent_pred"), ("ddp", "mode"), ("ddp", "imagined")):
-        torch.testing.assert_close(outs["async"][key], outs["inline"][key], rtol=0, atol=0, equal_nan=True)
+    return outs
 
 
 def test_background_forecast_keeps_the_thread_count_copies_and_follows_a_swapped_detector(exp):

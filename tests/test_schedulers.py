@@ -192,6 +192,25 @@ def test_ddim_matches_diffusers(prediction_type, clip_sample, case):
     check_parity(mine, ref, n, eta=eta)
 
 
+def test_ddim_steps_to_the_next_timestep_of_an_uneven_trailing_grid():
+    """Trailing spacing with K = 100, n = 3 steps through 99, 66, 32: from 66 the sample must reach noise
+    level 32, the next step's (diffusers' k - K // n gives 33, and the next call then reads a sample of level
+    33 as one of level 32)."""
+    ddim = build("ddim", dict(num_inference_steps=3, timestep_spacing="trailing", prediction_type="sample",
+                             clip_sample=False))
+    assert ddim.timesteps.tolist() == [99, 66, 32]
+    x0 = torch.full((1, 4, 2), 0.5)
+    eps = torch.randn(1, 4, 2, generator=torch.Generator().manual_seed(0))
+    ab = ddim.alphas_cumprod
+    x66 = ab[66].sqrt() * x0 + (1 - ab[66]).sqrt() * eps
+    out = ddim.step(x0, 66, x66).prev_sample  # the exact clean sample predicted: DDIM lands on level 32 exactly
+    torch.testing.assert_close(out, ab[32].sqrt() * x0 + (1 - ab[32]).sqrt() * eps, rtol=1e-5, atol=1e-6)
+    last = ddim.step(x0, 32, out).prev_sample
+    torch.testing.assert_close(last, x0, rtol=1e-5, atol=1e-6)  # after the last step: the clean sample
+    leading = build("ddim", dict(num_inference_steps=3))
+    assert leading.timesteps.tolist() == [66, 33, 0] and leading._previous(66) == 33 and leading._previous(0) == -1
+
+
 def test_default_timesteps():
     assert build("ddpm").timesteps.tolist() == list(range(99, -1, -1))
     assert build("ddim").timesteps.tolist() == list(range(90, -1, -10))

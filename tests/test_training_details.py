@@ -554,7 +554,8 @@ def test_cli_bench_prints_the_latency_lines(tmp_path, capsys):
 
 
 def test_cli_bench_compares_with_the_dp3_baseline_in_the_same_process(tmp_path, capsys):
-    """By default the recipe and its DP3 baseline (world model off) are timed one after the other, with ratios."""
+    """By default the recipe and its DP3 baseline (world model off) are timed in alternating rounds, with cost
+    ratios that read the same way on every row (samples per second: baseline / recipe)."""
     from ddp.cli import main
 
     recipe = _cli_recipe(tmp_path)
@@ -566,7 +567,28 @@ def test_cli_bench_compares_with_the_dp3_baseline_in_the_same_process(tmp_path, 
     for name in ("obs_to_action_ms", "control_cycle_ms", "train_step_ms", "train_samples_per_s"):
         mine, base, ratio = float(rows[name][0]), float(rows[name][1]), rows[name][2]
         assert base > 0 and ratio.endswith("x")
-        assert float(ratio[:-1]) == pytest.approx(mine / base, rel=0.1, abs=0.01)  # printed values are rounded
+        cost = base / mine if name.endswith("_per_s") else mine / base  # both: how many times the baseline's cost
+        assert float(ratio[:-1]) == pytest.approx(cost, rel=0.1, abs=0.01)  # printed values are rounded
+
+
+def test_compare_alternates_rounds_and_takes_their_medians(monkeypatch):
+    from ddp import bench as bench_mod
+
+    calls = []
+
+    def fake_bench(exp, **kw):
+        calls.append(exp)
+        n = len(calls)
+        return {"obs_to_action_ms": 10.0 * n, "train_samples_per_s": 100.0 / n}
+
+    monkeypatch.setattr(bench_mod, "bench", fake_bench)
+    monkeypatch.setattr(bench_mod, "baseline_of", lambda exp: "base")
+    rows = bench_mod.compare("ddp", rounds=3)
+    assert calls == ["ddp", "base"] * 3  # interleaved, not all of one then the other
+    mine, base, ratio = rows["obs_to_action_ms"]
+    assert (mine, base, ratio) == (30.0, 40.0, 0.75)  # medians of 10/30/50 and 20/40/60
+    mine, base, ratio = rows["train_samples_per_s"]
+    assert ratio == pytest.approx(base / mine)  # a throughput's cost ratio: baseline / recipe
 
 
 

@@ -79,10 +79,20 @@ class DDIMScheduler(DiscreteDiffusionScheduler):
             ks = [round(K - i * ratio) - 1 for i in range(math.ceil(K / ratio))]
         self.timesteps = torch.tensor(ks, dtype=torch.int64)
 
+    def _previous(self, k: int) -> int:
+        """The step after ``k`` in ``timesteps`` (-1 after the last): with trailing spacing and K not a multiple
+        of n the steps are not evenly spaced (K=100, n=3: 99, 66, 32), so ``k - K // n`` (diffusers' rule)
+        would land beside the next one; a ``k`` off the grid falls back to that rule."""
+        ks = self.timesteps.tolist()
+        if k in ks:
+            i = ks.index(k)
+            return ks[i + 1] if i + 1 < len(ks) else -1
+        return k - self.config.num_train_timesteps // self.num_inference_steps
+
     def step(
         self, model_output: torch.Tensor, timestep: int, sample: torch.Tensor, generator: torch.Generator | None = None
     ) -> StepOutput:
-        """x_k -> x_{k'} with k' = k - K // n (DDIM eq. 12):
+        """x_k -> x_{k'} with k' the next of ``timesteps`` (``k - K // n`` for leading spacing; DDIM eq. 12):
 
         1. alpha_bar_k, alpha_bar_{k'} (final_alpha_cumprod when k' < 0)
         2. x_0 and eps from the network output, x_0 clipped to +-clip_sample_range
@@ -92,7 +102,7 @@ class DDIMScheduler(DiscreteDiffusionScheduler):
         4. x_{k'} = sqrt(alpha_bar_{k'}) x_0 + sqrt(1 - alpha_bar_{k'} - sigma_k^2) eps + sigma_k z
         """
         k = int(timestep)
-        k_prev = k - self.config.num_train_timesteps // self.num_inference_steps
+        k_prev = self._previous(k)
         # 1.
         alpha_bar_t = self.alphas_cumprod[k]
         alpha_bar_prev = self.alphas_cumprod[k_prev] if k_prev >= 0 else self.final_alpha_cumprod
