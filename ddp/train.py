@@ -267,6 +267,13 @@ class Trainer:
             earlier = state.get("train_seconds")
             earlier_seconds = None if earlier is None else float(earlier)
             last_means.update({k: float(v) for k, v in state.get("losses", {}).items() if k in last_means})
+            window = state.get("log_window")
+            if window and window.get("count") and window.get("sums"):
+                # each rank takes the mean of the saved ranks' sums: the window's mean over the ranks is kept
+                # whatever the world size now
+                count = int(window["count"])
+                sums = {k: float(sum(float(r.get(k, 0.0)) for r in window["sums"]) / len(window["sums"]))
+                        for k in sums}
         t0, samples = time.perf_counter(), 0
         bar = tqdm(total=total, initial=step, disable=not (self.progress and ranks.main), desc=exp.recipe.name,
                    unit="step")
@@ -287,9 +294,10 @@ class Trainer:
             """Write last.pt for the step boundary reached; a signal that arrives during the write is
             raised after it (``raise_deferred``) or, in the loop, recorded for the next boundary."""
             nonlocal saved_step
-            # every rank's noise streams (a collective), written by rank 0 only
+            # every rank's noise streams and unlogged loss sums (a collective), written by rank 0 only
             streams = {i: g for part in ranks.gather({i: boundary_noise[i].cpu() for i in mine})
                        for i, g in part.items()}
+            window = ranks.gather(dict(sums))  # the steps since the last log line, per rank
             if not ranks.main:
                 # rank 0 is writing; it says whether the write failed (a collective), so that a failed write
                 # ends every rank with one line instead of leaving the others in the next collective
@@ -309,6 +317,8 @@ class Trainer:
                 "recipe": exp.to_yaml(),
                 "train_seconds": None if earlier_seconds is None else earlier_seconds + time.perf_counter() - t0,
                 "losses": dict(last_means),  # the last logged window's loss terms
+                # the window being logged: a resumed run's first row then covers all its steps
+                "log_window": {"count": count, "sums": window},
             }
             if ema is not None:
                 payload["ema"] = ema.state_dict()

@@ -76,6 +76,32 @@ def test_resume_after_interruption_equals_uninterrupted_run(tiny_recipe, tmp_pat
     assert res4.total_seconds is None and load_checkpoint(tmp_path / "resumed/last.pt")["train_seconds"] is None
 
 
+def test_a_resumed_run_logs_the_same_rows_as_an_uninterrupted_one(tiny_recipe, tmp_path):
+    """Killed between two log lines, after an epoch's checkpoint: the steps since the last row were lost from
+    the window (the resumed run's first row averaged fewer steps). The checkpoint keeps the window's sums."""
+    tiny_recipe["train"].update(log_every_steps=1000, checkpoint_every_epochs=1)  # one row: the last step's
+    full = build(tiny_recipe)
+    res = full.train(output_dir=tmp_path / "full", progress=False)
+    per_epoch = res.steps // res.epochs
+    interrupted = build(tiny_recipe)
+    orig, calls = interrupted.model.loss, {"n": 0}
+
+    def failing_loss(batch, generator=None):
+        calls["n"] += 1
+        if calls["n"] == per_epoch + 1:  # after the first epoch's checkpoint, before any row
+            raise KeyboardInterrupt
+        return orig(batch, generator=generator)
+
+    interrupted.model.loss = failing_loss
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.train(output_dir=tmp_path / "resumed", progress=False)
+    assert load_checkpoint(tmp_path / "resumed/last.pt")["log_window"]["count"] == per_epoch
+    build(tiny_recipe).train(output_dir=tmp_path / "resumed", progress=False)
+    rows = {name: (tmp_path / name / "logs" / "scalars" / "loss.csv").read_text().strip().splitlines()
+            for name in ("full", "resumed")}
+    assert rows["resumed"] == rows["full"] and len(rows["full"]) == 1, rows  # the mean over every step
+
+
 @pytest.mark.parametrize("where", ["sigterm_after_the_noise_draws", "interrupt_during_the_ema_update"])
 def test_an_interruption_inside_a_step_never_checkpoints_half_a_step(where, tiny_recipe, tmp_path):
     """A scheduler's SIGTERM lands wherever the step is, mostly in its forward / backward: training stops at
