@@ -323,7 +323,8 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
         "forecast_samples": exp.recipe.controller.forecast_samples,
         "seed": seed, "disturbances": list(disturbances), "env": dict(env or {}), "rows": rows,
         "traces": traces,
-        "success": {name: [bool(ep["success"]) for ep in eps] for name, eps in test.items()},
+        "success": {name: [None if ep["success"] is None else bool(ep["success"]) for ep in eps]
+                    for name, eps in test.items()},  # None: an env that cannot judge (a real robot)
         "first_visible": {name: [first_visible(ep) for ep in eps] for name, eps in test.items() if name != "id"},
         "rollouts": {"calibration": cal_eps, **test},
     }
@@ -342,7 +343,8 @@ def save_rollouts(rollouts: dict, path) -> None:
                 if ep.get(key) is not None:
                     arrays[f"{name}/{i}/{key}"] = np.asarray(ep[key], dtype=np.float32)
             arrays[f"{name}/{i}/disturbed"] = np.asarray(ep.get("disturbed") or [], dtype=bool)
-            arrays[f"{name}/{i}/meta"] = np.asarray([ep["seed"], int(ep["success"])], dtype=np.int64)
+            judged = -1 if ep["success"] is None else int(ep["success"])  # -1: not judged (a real robot)
+            arrays[f"{name}/{i}/meta"] = np.asarray([ep["seed"], judged], dtype=np.int64)
     np.savez_compressed(path, **arrays)
 
 
@@ -355,7 +357,7 @@ def load_rollouts(path) -> dict:
             ep = out.setdefault(name, {}).setdefault(int(i), {})
             value = data[key]
             if field == "meta":
-                ep["seed"], ep["success"] = int(value[0]), bool(value[1])
+                ep["seed"], ep["success"] = int(value[0]), (None if int(value[1]) < 0 else bool(value[1]))
             elif field == "disturbed":
                 ep["disturbed"] = value.tolist()
             else:

@@ -91,6 +91,11 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     runs = dict(num_envs=s.num_envs, progress=progress, parallel=s.parallel)
     report = {"recipe": exp.recipe.name, "episodes": s.episodes, "seed": s.seed, "protocols": {}}
     calibrations: dict[str, dict] = {}  # per detector section: calibrated once, on ID rollouts
+    for name in s.protocols:  # every protocol's controller is built once first: a part the env cannot serve
+        protocol = get_protocol(name)  # (e.g. an oracle on a real robot) is refused before any rollout
+        overrides = env_overrides(exp, protocol, cfg.max_steps)
+        exp.make_controller(detector=protocol.detector, imagine=protocol.imagine,
+                            tracker=protocol.tracker and not overrides.get("oracle_tracking", False)).close()
     for name in s.protocols:
         protocol = get_protocol(name)
         overrides = env_overrides(exp, protocol, cfg.max_steps)

@@ -125,10 +125,11 @@ class Experiment:
             return
         reads = [k for k in getattr(module, "in_keys", []) if isinstance(k, tuple) and k[:1] == ("privileged",)]
         if reads:
-            raise RecipeError(f"'{type(module).__name__}' reads the simulator's {reads[0]}, which this env does not "
-                              f"have (a real robot: it reads zero there); use a detector / tracker that works from "
-                              f"the observations (e.g. discrepancy, pointcloud, foundationpose)", source=self.source,
-                              key=key)
+            what = "a protocol's detector " if key == "eval.protocols" else ""
+            raise RecipeError(f"{what}'{type(module).__name__}' reads the simulator's {reads[0]}, which this env does "
+                              f"not have (a real robot: it reads zero there); use a detector / tracker that works "
+                              f"from the observations (e.g. discrepancy, pointcloud, foundationpose), or protocols "
+                              f"without an oracle", source=self.source, key=key)
 
     def make_controller(self, *, detector: dict | None = None, imagine: bool | None = None,
                         track: bool | None = None, tracker: bool = True, seed: int | None = None,
@@ -160,7 +161,7 @@ class Experiment:
         ]
         det = det_part.build()
         trk = trk_part.build() if trk_part is not None else None
-        self._check_simulator_truth(env_part, det, "controller.detector" if detector is None else "the protocol's detector")
+        self._check_simulator_truth(env_part, det, "controller.detector" if detector is None else "eval.protocols")
         self._check_simulator_truth(env_part, trk, "controller.tracker")
         return DDPController(
             self.model.eval(),

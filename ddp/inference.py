@@ -363,15 +363,17 @@ class DDPController(KeyedModule):
         return (todo, torch.stack([self.states[b].pending[0] for b in todo]),
                 torch.stack([self.states[b].pending[1] for b in todo]))
 
-    def _forecast(self, envs: list[int]) -> None:
+    def _forecast(self, envs: list[int], one_thread: bool = False) -> None:
         """O_pred = W_phi(O_curr, a_t) for the listed environments, one batched world-model call.
 
         Lazy forecasts are made here, when D_R-I or imagination needs them, and the inline next-cycle
-        forecast; a background forecast (``async_forecast``) is collected by :meth:`forward` first.
+        forecast (``one_thread``, as its background twin runs); a background forecast (``async_forecast``)
+        is collected by :meth:`forward` first.
         """
         pending = self._pending(envs)
         if pending is not None:
-            self._store(pending[0], *self._imagine_one_thread(pending[1], pending[2]))
+            imagine = self._imagine_one_thread if one_thread else self._imagine
+            self._store(pending[0], *imagine(pending[1], pending[2]))
 
     def wait_forecast(self) -> None:
         """Block until the background forecast (``async_forecast``), if one is running, is done."""
@@ -389,7 +391,7 @@ class DDPController(KeyedModule):
         """The next cycle's forecast, made now: inline, or in the background thread (``async_forecast``)."""
         envs = list(range(len(self.states)))
         if not self.async_forecast:
-            self._forecast(envs)
+            self._forecast(envs, one_thread=True)  # single-threaded like the background forecast: the same bits
             return
         pending = self._pending(envs)
         if pending is None:

@@ -284,9 +284,21 @@ def test_detector_calibrates_then_flags_above_tau_and_never_at_the_first_chunk()
     assert other(td)["ddp", "ood"].tolist() == [False, True, False]
 
 
+def test_saved_rollouts_keep_a_success_nobody_judged(tmp_path):
+    """ddp detect on a real robot (franky-sim included): success is None; saving its rollouts crashed on
+    int(None), and a None read back must stay None, not become a failure."""
+    from ddp.detection import load_rollouts, save_rollouts
+
+    eps = [{"seed": 3, "success": None, "disturbed": [0, 1]}, {"seed": 4, "success": True, "disturbed": []}]
+    save_rollouts({"id": eps}, tmp_path / "r.npz")
+    back = load_rollouts(tmp_path / "r.npz")["id"]
+    assert [(e["seed"], e["success"]) for e in back] == [(3, None), (4, True)]
+
+
 def test_a_threshold_the_episode_cap_can_never_reach_fails_before_rolling_out_more(tiny_recipe, monkeypatch):
-    """alpha 0.01 with tau set on successful held-out episodes needs 99 of them, i.e. at least 198 episodes
-    with half held out: above eval.max_calibration_episodes (160) it fails at once, not after 160 rollouts."""
+    """alpha 0.01 with tau set on successful held-out episodes needs 99 of them, i.e. at least 197 episodes
+    (every second one held out, the first included): above eval.max_calibration_episodes (160) it fails at
+    once, not after 160 rollouts."""
     from ddp import build, eval_runner
 
     calls = []
@@ -298,7 +310,10 @@ def test_a_threshold_the_episode_cap_can_never_reach_fails_before_rolling_out_mo
     monkeypatch.setattr(eval_runner, "calibration_episodes", fake)
     exp = build(tiny_recipe)
     strict = DiscrepancyDetector(DiscrepancyConfig(alpha=0.01, per_chunk=True))
-    with pytest.raises(ValueError, match=r"needs 99 successful.*at least 198 ID calibration episodes, more than "
+    from ddp.detectors.scores import _fewest_holding_out, split_fit
+
+    assert _fewest_holding_out(19, 0.5) == 37 and 37 - sum(split_fit(37, 0.5)) == 19  # not 38
+    with pytest.raises(ValueError, match=r"needs 99 successful.*at least 197 ID calibration episodes, more than "
                                          r"eval.max_calibration_episodes \(160\)"):
         eval_runner.calibrate_detector(exp, strict, episodes=40, seed=0, progress=False)
     assert calls == [40]  # no further rollouts

@@ -239,8 +239,9 @@ class _FakeFranky:
 
 def test_a_real_reset_lifts_first_and_waits_for_the_operator_before_the_gripper_opens(monkeypatch):
     """The hand may hold the pot in the air when an episode times out: the reset goes straight up (inside the
-    box) before the joint motion sweeps the arm home, and on hardware waits for the operator (Enter) before
-    it opens the gripper, from the second episode on."""
+    box, never down) before the joint motion sweeps the arm home, and on hardware waits for the operator
+    (Enter) before it opens the gripper, at every reset (an evaluation builds a new backend per protocol, so
+    a backend's first reset is no evaluation's first)."""
     from ddp.envs.franka import real
 
     franky = _FakeFranky()
@@ -249,13 +250,14 @@ def test_a_real_reset_lifts_first_and_waits_for_the_operator_before_the_gripper_
     asked = []
     backend.confirm = lambda message: (asked.append(message), franky.events.append(("operator",)))
     backend.reset()
-    kinds = [e[0] for e in franky.events]
-    assert kinds == ["cartesian", "gripper", "joint"] and asked == []  # the first episode: set up beforehand
-    np.testing.assert_allclose(franky.events[0][1], [0.5, 0.0, 0.10])  # 8 cm straight up
-    franky.events.clear()
-    backend.reset()
     assert [e[0] for e in franky.events] == ["cartesian", "operator", "gripper", "joint"]
+    np.testing.assert_allclose(franky.events[0][1], [0.5, 0.0, 0.10])  # 8 cm straight up
     assert "take what the gripper holds" in asked[0]
+    franky.events.clear()
+    backend.robot.pose = (np.array([0.5, 0.0, 0.6]), backend.robot.pose[1])  # above the box's top (0.5)
+    backend.reset()
+    assert [e[0] for e in franky.events] == ["cartesian", "operator", "gripper", "joint"] and len(asked) == 2
+    np.testing.assert_allclose(franky.events[0][1], [0.5, 0.0, 0.6])  # stays: clipping to the box would go down
     quiet = real.FrankyBackend(RealBackendConfig(operator_reset=False, reset_lift=0.0), cameras={})
     franky.events.clear()
     quiet.reset()
@@ -624,8 +626,13 @@ def test_parts_that_read_the_simulators_truth_are_refused_on_a_real_robot():
     real = build("recipes/franka_stack.yaml", ["env.backend=real", "controller.detector.tau=1.0"])
     with pytest.raises(RecipeError, match=r"controller.tracker.*reads the simulator's \('privileged', 'displacement'\)"):
         real.make_controller()
-    with pytest.raises(RecipeError, match="the protocol's detector.*reads the simulator's"):
+    with pytest.raises(RecipeError, match=r"eval.protocols.*a protocol's detector 'OracleDetector' reads the simulator's"):
         real.make_controller(detector={"name": "oracle"}, tracker=False)
+    oracle = build("recipes/franka_stack.yaml", ["env.backend=real", "controller.tracker=null",
+                                                 "controller.detector={name: oracle}"])
+    # refused before any rollout: id (detector never) would otherwise connect to a robot first
+    with pytest.raises(RecipeError, match="controller.detector: 'OracleDetector' reads the simulator's"):
+        oracle.evaluate(["id", "id_ddp"], episodes=1, progress=False)
     real.make_controller(tracker=False)  # the discrepancy detector works from the observations
     simulated = build("recipes/franka_stack.yaml", ["env.backend=real", "controller.detector.tau=1.0",
                                                      "env.real={franky_sim_info: /tmp/fsim.json}"])

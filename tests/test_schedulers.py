@@ -207,6 +207,9 @@ def test_ddim_steps_to_the_next_timestep_of_an_uneven_trailing_grid():
     torch.testing.assert_close(out, ab[32].sqrt() * x0 + (1 - ab[32]).sqrt() * eps, rtol=1e-5, atol=1e-6)
     last = ddim.step(x0, 32, out).prev_sample
     torch.testing.assert_close(last, x0, rtol=1e-5, atol=1e-6)  # after the last step: the clean sample
+    for n in (29, 31, 58, 62, 97):  # K / ratio a hair above n: diffusers' grid gets a step at level -1
+        grid = build("ddim", dict(num_inference_steps=n, timestep_spacing="trailing")).timesteps.tolist()
+        assert len(grid) == n and grid[0] == 99 and min(grid) >= 0 and grid == sorted(set(grid), reverse=True), n
     leading = build("ddim", dict(num_inference_steps=3))
     assert leading.timesteps.tolist() == [66, 33, 0] and leading._previous(66) == 33 and leading._previous(0) == -1
 

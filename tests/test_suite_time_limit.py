@@ -104,11 +104,15 @@ def test_only_a_run_with_training_left_counts_as_progressing(tmp_path, monkeypat
     monkeypatch.chdir(tmp_path)
     run = dataclasses.replace(_run_stub(tmp_path), recipe={"train": {"output_dir": "runs/x", "max_steps": 10}})
     assert budget.trains_on(run)  # no checkpoint yet
-    monkeypatch.setattr(budget, "_checkpoint_step", lambda r: 7)
+    monkeypatch.setattr(budget, "_checkpoint_position", lambda r: (7, 1))
     assert budget.trains_on(run)
-    monkeypatch.setattr(budget, "_checkpoint_step", lambda r: 10)
+    monkeypatch.setattr(budget, "_checkpoint_position", lambda r: (10, 2))
     assert not budget.trains_on(run)  # trained: only evaluation is left
     assert not budget.trains_on(dataclasses.replace(run, reevaluate=("id",)))
+    by_epochs = dataclasses.replace(run, recipe={"train": {"output_dir": "runs/x", "max_steps": 100, "epochs": 2}})
+    assert not budget.trains_on(by_epochs)  # its epochs ended it before its step budget
+    monkeypatch.setattr(budget, "_checkpoint_position", lambda r: (7, 1))
+    assert budget.trains_on(by_epochs)
 
 
 @pytest.mark.parametrize("first_cost", [2.0, 9.0])

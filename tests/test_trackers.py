@@ -503,6 +503,27 @@ def test_foundationpose_track_mode_registers_again_when_the_pose_leaves_the_obje
         FoundationPoseTrackerConfig(num_objects=1, track_tolerance=float("nan"))
 
 
+class CornerOrigin(SimulatorPoses):
+    """Poses of a mesh whose origin sits 8 cm off the object's centre (a corner-origin CAD export)."""
+
+    def _pose(self, K, depth):
+        shift = np.eye(4)
+        shift[:3, 3] = [0.08, 0.0, 0.0]
+        return super()._pose(K, depth) @ shift
+
+
+def test_foundationpose_track_check_expects_the_surface_where_registration_saw_it(scene):
+    """The visible surface of an object whose mesh origin is off its centre lies far from that origin: the
+    check compares the centroid with where registration saw the surface, so a right pose is not registered
+    again every cycle."""
+    tracker = FoundationPoseTracker(FoundationPoseTrackerConfig(num_objects=2, min_offset=0.0),
+                                    estimator_factory=lambda k: CornerOrigin(scene, k, []))
+    _fp_observe(tracker, scene, 0)
+    for chunk in (1, 2, 3):
+        off, vis = _fp_observe(tracker, scene, chunk)
+    assert tracker.reregistered == 0 and vis.all() and np.allclose(off, 0.0, atol=1e-6)
+
+
 def test_foundationpose_default_offsets_match_the_box_displacement(scene):
     tracker = FoundationPoseTracker(FoundationPoseTrackerConfig(num_objects=2),
                                     estimator_factory=lambda k: SimulatorPoses(scene, k, []))

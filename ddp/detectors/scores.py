@@ -258,6 +258,14 @@ def _needed(alpha: float) -> int:
     return math.ceil((1.0 - alpha) / alpha)
 
 
+def _fewest_holding_out(need: int, fit_fraction: float) -> int:
+    """The fewest episodes whose split (:func:`split_fit`) holds out at least ``need`` of them."""
+    n = need
+    while n - sum(split_fit(n, fit_fraction)) < need:
+        n += 1
+    return n
+
+
 def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | None, point_dims: int = 0,
                     fit_fraction: float = 0.5, tau: float | None = None,
                     threshold_on: str = "all", fit_on: str = "all") -> ScoreCalibration:
@@ -310,7 +318,8 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
             raise NeedMoreEpisodes(
                 f"alpha {alpha:g} needs {need} successful held-out ID calibration episodes for its threshold "
                 f"(threshold_on: successful); {len(ok)} of {len(held)} succeeded",
-                more=math.ceil((need - len(ok)) / (share * rate)), at_least=math.ceil(need / share))
+                more=math.ceil((need - len(ok)) / (share * rate)),
+                at_least=_fewest_holding_out(need, fit_fraction) if spec.needs_reference else need)
     reference_eps = held  # every held-out ID episode, failing ones too: the ID side of the reports' AUROC
     if tau is None and threshold_on == "successful":
         held = [e for e in held if e["success"]]

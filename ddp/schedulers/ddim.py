@@ -8,7 +8,6 @@ strided steps (deterministically when ``eta = 0``). Numerically equal to
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -76,7 +75,9 @@ class DDIMScheduler(DiscreteDiffusionScheduler):
         else:
             ratio = K / num_inference_steps
             # numpy's round (half to even), as diffusers does, on the float grid K, K - ratio, ...
-            ks = [round(K - i * ratio) - 1 for i in range(math.ceil(K / ratio))]
+            # exactly n steps (K / ratio can come out a hair above n, e.g. K = 100, n = 29: diffusers then adds
+            # a step at level -1, i.e. alphas_cumprod[-1], the noisiest)
+            ks = [max(round(K - i * ratio) - 1, 0) for i in range(num_inference_steps)]
         self.timesteps = torch.tensor(ks, dtype=torch.int64)
 
     def _previous(self, k: int) -> int:

@@ -72,6 +72,12 @@ def stored_results(results_dir: str | Path) -> list[dict]:
 
 def _checkpoint_step(run: RunSpec) -> int | None:
     """The step of the checkpoint this run would resume, or None (none, unreadable, or one set aside)."""
+    position = _checkpoint_position(run)
+    return None if position is None else position[0]
+
+
+def _checkpoint_position(run: RunSpec) -> tuple[int, int] | None:
+    """``(step, epoch)`` of the checkpoint this run would resume, or None (none, unreadable, or set aside)."""
     out = Path(run.recipe["train"]["output_dir"])
     if not (out / "last.pt").is_file():  # the common case, before importing what reading one needs
         return None
@@ -81,10 +87,11 @@ def _checkpoint_step(run: RunSpec) -> int | None:
     if superseded(out, run.recipe, run.run_id) is not None:
         return None
     try:
-        step = load_checkpoint(out / "last.pt", mmap=True).get("step")
+        state = load_checkpoint(out / "last.pt", mmap=True)
     except (DDPError, OSError):
         return None
-    return int(step) if isinstance(step, int) else None
+    step, epoch = state.get("step"), state.get("epoch")
+    return (int(step), int(epoch) if isinstance(epoch, int) else 0) if isinstance(step, int) else None
 
 
 def _eval_seconds(result: dict, protocol: str) -> float | None:
@@ -151,13 +158,19 @@ def estimate_seconds(run: RunSpec, stored: list[dict]) -> tuple[float | None, st
 
 
 def trains_on(run: RunSpec) -> bool:
-    """Whether starting ``run`` would train (its checkpoint, if any, is short of its step budget): only such a
-    run makes progress that outlives a stop (a re-evaluation, or a run whose training is done, starts its
-    evaluation over each time)."""
-    budget = run.recipe.get("train", {}).get("max_steps")
-    if run.reevaluate or not isinstance(budget, int) or budget <= 0:
-        return not run.reevaluate
-    return (_checkpoint_step(run) or 0) < budget
+    """Whether starting ``run`` would train (its checkpoint, if any, is short of its step budget and of its
+    epochs): only such a run makes progress that outlives a stop (a re-evaluation, or a run whose training is
+    done, starts its evaluation over each time). Budgets the recipe does not state count as not reached."""
+    if run.reevaluate:
+        return False
+    position = _checkpoint_position(run)
+    if position is None:
+        return True
+    train = run.recipe.get("train", {})
+    for limit, reached in ((train.get("max_steps"), position[0]), (train.get("epochs"), position[1])):
+        if isinstance(limit, int) and not isinstance(limit, bool) and limit > 0 and reached >= limit:
+            return False
+    return True
 
 
 @dataclass

@@ -125,6 +125,7 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
                     "wall_seconds": time.perf_counter() - t0,
                     "code": code_version(),
                 }
+                print(f"== {run.run_id} finished", flush=True)
         except BaseException as err:  # the traceback stays with the run (the suite prints one line)
             if isinstance(err, KeyboardInterrupt):
                 print(f"== {run.run_id} stopped ({err or 'interrupted'}; a training run saved its checkpoint)", flush=True)
@@ -132,7 +133,6 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
                 traceback.print_exc()
                 print(f"== {run.run_id} failed", flush=True)
             raise
-        print(f"== {run.run_id} finished", flush=True)
     return result
 
 
@@ -380,7 +380,7 @@ def _run_in_turn(todo: list[RunSpec], finished, failure, *, threads: int | None,
                     try:
                         result = execute_run(run, threads, deferred=held)
                     except Exception as err:  # the next run still runs; KeyboardInterrupt / Preempted stop it
-                        with signals_deferred() as received, guard:
+                        with signals_deferred(held) as received, guard:  # a stop held while it failed: honoured
                             state["run"] = None
                             failure(run, err)
                             handled.add(run.run_id)

@@ -217,6 +217,10 @@ class _ObjectPose(CarriedState):
     """An object's reference pose and, inherited, its carried-check state (``last``: the reported point)."""
 
     ref: np.ndarray  # reference pose in the base frame (4x4): p^exp
+    # the centroid of the object's observed points minus its pose's origin, at its last registration (base
+    # frame): where a tracked pose's visible surface is expected (a large or off-centre object's surface
+    # centroid lies far from its origin)
+    surface: np.ndarray | None = None
 
 
 @register("tracker", "foundationpose", config=FoundationPoseTrackerConfig)
@@ -248,29 +252,35 @@ class FoundationPoseTracker(ObjectTracker):
 
     def _masks(self, depth, K, T, seg, ee, anchors) -> list:
         """Per-object pixel masks [H, W] bool (None where the object was not found)."""
+        return [None if f is None else f[0] for f in self._found(depth, K, T, seg, ee, anchors)]
+
+    def _found(self, depth, K, T, seg, ee, anchors) -> list:
+        """Per object ``(mask [H, W] bool, centroid of its points [3])``, None where it was not found."""
         found = self.isolator.isolate(depth, K, T, seg, self.num_objects, ee, anchors=anchors)
-        masks = []
+        out = []
         for f in found:
             if f is None:
-                masks.append(None)
+                out.append(None)
                 continue
             m = np.zeros(depth.size, dtype=bool)
             m[f[1]] = True
-            masks.append(m.reshape(depth.shape))
-        return masks
+            out.append((m.reshape(depth.shape), np.asarray(f[0], dtype=np.float64).mean(0)))
+        return out
 
-    def _agrees(self, pose, k: int, depth, K, T, seg, ee) -> bool:
-        """Whether a tracked object-in-camera ``pose`` lies within ``track_tolerance`` of the centroid of the
-        object's observed points (its segmentation pixels, or the geometric cluster found near the tracked
-        position); no points there (lost, or hidden) disagrees."""
+    def _agrees(self, pose, k: int, state, depth, K, T, seg, ee) -> bool:
+        """Whether a tracked object-in-camera ``pose`` puts the object's visible surface (its origin plus the
+        surface offset seen at its last registration) within ``track_tolerance`` of the centroid of its
+        observed points (segmentation pixels, or the geometric cluster found near the tracked position); no
+        points there (lost, or hidden) disagrees."""
         if pose is None or not np.all(np.isfinite(pose)):
             return False
-        centre = (T @ pose)[:3, 3]
-        anchors = [centre if j == k else None for j in range(self.num_objects)]
+        origin = (T @ pose)[:3, 3]
+        expected = origin + (state.surface if state.surface is not None else 0.0)
+        anchors = [expected if j == k else None for j in range(self.num_objects)]
         found = self.isolator.isolate(depth, K, T, seg, self.num_objects, ee, anchors=anchors)[k]
         if found is None:
             return False
-        return float(np.linalg.norm(found[0].mean(0) - centre)) <= self.config.track_tolerance
+        return float(np.linalg.norm(np.asarray(found[0]).mean(0) - expected)) <= self.config.track_tolerance
 
     def _position(self, pose_world: np.ndarray) -> np.ndarray:
         return geo.transform_points(pose_world, self.point[None])[0]
@@ -282,15 +292,15 @@ class FoundationPoseTracker(ObjectTracker):
                 "foundationpose tracker: without a segmentation image set isolation.expected_positions "
                 "(each object's approximate ID position, to find its registration mask)"
             )
-        masks = self._masks(depth, K, T, seg, ee, anchors or [None] * self.num_objects)
+        found = self._found(depth, K, T, seg, ee, anchors or [None] * self.num_objects)
         states = []
-        for k, mask in enumerate(masks):
-            if mask is None:
+        for k, f in enumerate(found):
+            if f is None:
                 states.append(None)
                 continue
-            pose = self._estimator(b, k).register(K, rgb, depth, mask, self.config.register_iterations)
+            pose = self._estimator(b, k).register(K, rgb, depth, f[0], self.config.register_iterations)
             world = T @ pose
-            states.append(_ObjectPose(ref=world, last=self._position(world)))
+            states.append(_ObjectPose(ref=world, last=self._position(world), surface=f[1] - world[:3, 3]))
         return states
 
     def _track_env(self, b, states, depth, K, T, rgb, seg, ee):
@@ -309,11 +319,13 @@ class FoundationPoseTracker(ObjectTracker):
                 pose = est.register(K, rgb, depth, masks[k], c.register_iterations) if masks[k] is not None else None
             else:
                 pose = est.track(K, rgb, depth, c.track_iterations)
-                if c.track_tolerance is not None and not self._agrees(pose, k, depth, K, T, seg, ee):
+                if c.track_tolerance is not None and not self._agrees(pose, k, s, depth, K, T, seg, ee):
                     # lost: registered again from the object's pixels near where it was last seen
                     anchors = [s_.last if s_ is not None else None for s_ in states]
-                    mask = self._masks(depth, K, T, seg, ee, anchors)[k]
-                    pose = est.register(K, rgb, depth, mask, c.register_iterations) if mask is not None else None
+                    f = self._found(depth, K, T, seg, ee, anchors)[k]
+                    pose = est.register(K, rgb, depth, f[0], c.register_iterations) if f is not None else None
+                    if pose is not None and np.all(np.isfinite(pose)):
+                        s.surface = f[1] - (T @ pose)[:3, 3]
                     self.reregistered += 1
             disp = position = None
             if pose is not None and np.all(np.isfinite(pose)):

@@ -130,8 +130,8 @@ class RealBackendConfig:
     #: metres the hand rises straight up (inside the box) at a reset before the joint motion home, so that
     #: the way home does not sweep through what is on the table
     reset_lift: float = 0.08
-    #: on hardware (no franky-sim scene), every reset after the first waits for the operator (Enter on the
-    #: terminal) before the gripper opens: take what the hand holds, set the scene up for the next episode
+    #: on hardware (no franky-sim scene), every reset waits for the operator (Enter on the terminal) before
+    #: the gripper opens: take what the hand holds, set the scene up for the next episode
     operator_reset: bool = True
 
     def __post_init__(self):
@@ -344,7 +344,6 @@ class FrankyBackend(FrankaBackend):
         self._low = np.asarray(config.workspace_low)
         self._high = np.asarray(config.workspace_high)
         self.limited_steps = 0  # how many targets the safety limits changed (a diagnostic)
-        self._episodes = 0  # resets so far (the operator is asked from the second on)
         if scene is not None:
             server_names = tuple(scene.object_names)
             names = config.object_names or server_names
@@ -447,7 +446,7 @@ class FrankyBackend(FrankaBackend):
     # ---- episode ----
     def reset(self, object_positions: dict[str, np.ndarray] | None = None, home: bool = True) -> None:
         """Lift the hand straight up (``reset_lift``, inside the box), on hardware wait for the operator
-        (``operator_reset``, every reset after the first), open the gripper, then the joint motion home."""
+        (``operator_reset``), open the gripper, then the joint motion home."""
         franky = self.franky
         cfg = self.config
         try:
@@ -458,16 +457,16 @@ class FrankyBackend(FrankaBackend):
             self.robot.recover_from_errors()
         if home and cfg.reset_lift > 0.0:  # clear of the table before the joint motion sweeps the arm home
             pos, quat = self.ee_pose()
-            up = np.clip(pos + [0.0, 0.0, cfg.reset_lift], self._low, self._high)
-            up[:2] = pos[:2]  # straight up (a hand outside the box's x-y is not dragged into it sideways)
+            up = pos.copy()  # straight up (a hand outside the box's x-y is not dragged into it sideways), to
+            up[2] = max(pos[2], min(pos[2] + cfg.reset_lift, self._high[2]))  # the box's top at most, never down
             try:
                 self.robot.move(franky.CartesianMotion(self._affine(up, quat), franky.ReferenceType.Absolute))
             except Exception as exc:
                 self._raise_motion_error(exc)
-        if self.scene is None and cfg.operator_reset and self._episodes > 0:
+        if self.scene is None and cfg.operator_reset:  # every reset: an evaluation builds a new env (and
+            # backend) per protocol and calibration block, so "not the first" cannot be counted here
             self.confirm("reset: take what the gripper holds and set up the scene for the next episode; the "
                          "gripper then opens and the arm goes home. Press Enter to go on")
-        self._episodes += 1
         self._gripper_closed = None
         self.set_gripper(False)
         self._wait_gripper()
