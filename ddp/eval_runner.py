@@ -270,6 +270,25 @@ def calibration_blocks(exp, seed: int, episodes: int, first_seed: int) -> list[t
     return out
 
 
+def evaluation_blocks(exp, overrides: dict, seed: int, episodes: int) -> list[tuple[dict, int, int]]:
+    """``(overrides, first seed, episodes)`` for evaluating seeds ``seed .. seed + episodes - 1``: the
+    protocol's ``overrides`` for the first ``initial_states_per_draw`` seeds (all of them for an env whose
+    states do not repeat), then, per further block of that many seeds, the env's ``more_initial_states(block)``
+    on top (another draw of initial states: no two evaluated episodes start from one state)."""
+    config = dataclasses.replace(exp.parts["env"].config, **overrides)
+    period = getattr(config, "initial_states_per_draw", None)
+    more = getattr(config, "more_initial_states", None)
+    if not period or not callable(more) or episodes <= period:
+        return [(overrides, seed, episodes)]
+    out = []
+    for block, start in enumerate(range(seed, seed + episodes, period)):  # period consecutive seeds: distinct
+        extra = more(block) if block else {}
+        if extra:
+            check_env_options(exp, {**overrides, **extra}, source=exp.source, key="eval.env")
+        out.append(({**overrides, **extra}, start, min(period, seed + episodes - start)))
+    return out
+
+
 def calibration_episodes(exp, *, episodes: int, seed: int, num_envs: int = 1, progress: bool = True,
                          parallel: bool = False, first_seed: int | None = None) -> list[dict]:
     """ID rollouts of the base policy with the world model forecasting every cycle, each with its

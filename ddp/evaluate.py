@@ -21,7 +21,7 @@ from ddp.errors import DDPError, RecipeError
 from ddp.eval_report import markdown_table, protocol_result, write_report  # noqa: F401 (re-exported)
 from ddp.eval_runner import (  # noqa: F401 (re-exported: the runner's public names)
     ChunkedEnvFactory, calibrate_detector, calibration_env, calibration_episodes, env_factory, env_overrides, make_chunked_env,
-    rollout_episodes,
+    evaluation_blocks, rollout_episodes,
 )
 from ddp.protocols.base import check_protocols, get_protocol
 from ddp.video import VideoSettings
@@ -119,8 +119,10 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
             vid = VideoSettings(str(s.out_dir / "videos" / name), episodes=cfg.video_episodes, size=cfg.video_size,
                                 fps=cfg.video_fps, camera=cfg.video_camera)
         t0 = time.perf_counter()
-        episodes_run = rollout_episodes(exp, ctrl, episodes=s.episodes, seed=s.seed, overrides=overrides, desc=name,
-                                        video=vid, **runs)
+        episodes_run = []
+        for i, (block, first, n) in enumerate(evaluation_blocks(exp, overrides, s.seed, s.episodes)):
+            episodes_run += rollout_episodes(exp, ctrl, episodes=n, seed=first, overrides=block, desc=name,
+                                             video=vid if i == 0 else None, **runs)
         videos = None
         if vid is not None:
             videos = [str(p) for p in sorted(Path(vid.directory).glob("seed*")) if p.suffix in (".mp4", ".gif")]

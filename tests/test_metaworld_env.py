@@ -396,6 +396,40 @@ def test_calibration_seeds_past_one_draw_go_to_another_draw(monkeypatch):
     assert calls == [(100000, 60, 7)]  # a calibration env the recipe names is used as it is
 
 
+def test_evaluation_seeds_past_one_draw_go_to_another_draw_not_the_calibrations():
+    """recipes/metaworld/base.yaml evaluates 100 episodes (the paper's count): seeds 50 apart replayed one
+    layout (100 episodes, 50 initial states). The second 50 take a draw 1000 past the evaluated one, which
+    the calibration's draws (evaluated + 1, + 2, ...) do not reach; 50 or fewer episodes run as before."""
+    from ddp import build
+    from ddp.eval_runner import calibration_env, evaluation_blocks
+
+    exp = build("recipes/metaworld/quickstart_ddp.yaml")  # evaluates on draw 1
+    over = {"seed_tasks": 1}
+    assert evaluation_blocks(exp, over, 1000, 20) == [(over, 1000, 20)]
+    assert evaluation_blocks(exp, over, 1000, 100) == [(over, 1000, 50), ({"seed_tasks": 1001}, 1050, 50)]
+    assert evaluation_blocks(exp, over, 1030, 30) == [(over, 1030, 30)]  # 30 consecutive seeds: 30 layouts
+    assert evaluation_blocks(exp, over, 1030, 60) == [(over, 1030, 50), ({"seed_tasks": 1001}, 1080, 10)]
+    assert calibration_env(exp)["seed_tasks"] == 2 and calibration_env(exp, 3)["seed_tasks"] == 5
+    narrow = {"seed_tasks": 1, "task_indices": (0, 10)}
+    assert [b[1:] for b in evaluation_blocks(exp, narrow, 1000, 25)] == [(1000, 10), (1010, 10), (1020, 5)]
+    assert [b[0]["seed_tasks"] for b in evaluation_blocks(exp, narrow, 1000, 25)] == [1, 1001, 2001]
+
+
+def test_an_evaluation_of_more_episodes_than_layouts_rolls_out_each_block_on_its_draw(monkeypatch, tmp_path):
+    from ddp import build, evaluate as evaluate_mod
+
+    calls = []
+
+    def fake_rollouts(exp, ctrl, *, episodes, seed, overrides, **kw):
+        calls.append((seed, episodes, overrides["seed_tasks"]))
+        return [{"seed": seed + i, "success": True, "chunks": 1, "first_success_chunk": 0} for i in range(episodes)]
+
+    monkeypatch.setattr(evaluate_mod, "rollout_episodes", fake_rollouts)
+    exp = build("recipes/metaworld/quickstart_ddp.yaml")
+    report = exp.evaluate(["id"], episodes=100, output_dir=tmp_path, progress=False)
+    assert calls == [(1000, 50, 1), (1050, 50, 1001)] and report["protocols"]["id"]["episodes"] == 100
+
+
 # ------------------------------------------------------ occlusion, rendering
 
 

@@ -88,6 +88,8 @@ from ddp.safety import HoldSpec, require_finite  # noqa: E402
 __all__ = ["MetaWorldEnvConfig", "MetaWorldEnv"]
 
 NUM_TRAIN_TASKS = 50  # MT1 builds 50 fixed initial states per task
+#: MT1 draws of evaluation seeds past the first 50 are this far apart (calibration uses the draws right after)
+EVALUATION_DRAW_STRIDE = 1000
 
 
 def _import_sim():
@@ -214,6 +216,14 @@ class MetaWorldEnvConfig(ObservationOptions):
         if block < 0:
             raise ValueError(f"block must be >= 0; got {block}")
         return {"seed_tasks": self.seed_tasks + 1 + block}
+
+    def more_initial_states(self, block: int) -> dict:
+        """Overrides for evaluation seeds past this config's ``initial_states_per_draw`` (block 1, 2, ...): a
+        draw far from the calibration's (``seed_tasks + 1 + block``), so that 100 evaluated episodes start from
+        100 initial states (seeds 50 apart would replay one) and none is a calibration episode's."""
+        if block < 1:
+            raise ValueError(f"block must be >= 1; got {block}")
+        return {"seed_tasks": self.seed_tasks + EVALUATION_DRAW_STRIDE * block}
 
     @property
     def initial_states_per_draw(self) -> int:
