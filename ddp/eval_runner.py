@@ -262,10 +262,19 @@ def calibration_blocks(exp, seed: int, episodes: int, first_seed: int) -> list[t
         period = getattr(_id_env(exp)[1], "initial_states_per_draw", None)
     if not period:
         return [(0, seed, episodes)]
+    return seed_blocks(seed, episodes, period, first=first_seed)
+
+
+def seed_blocks(seed: int, episodes: int, period: int, *, anchor: int = 0,
+                first: int | None = None) -> list[tuple[int, int, int]]:
+    """``(block, first seed, episodes)``: the seeds ``seed .. seed + episodes - 1`` cut wherever ``seed -
+    anchor`` is a multiple of ``period`` (so each piece's seeds are consecutive and fewer than ``period``:
+    distinct initial states), each piece's block counted from the one ``first`` (default ``seed``) lies in."""
+    first = seed if first is None else first
     out, s, end = [], seed, seed + episodes
     while s < end:
-        stop = min(end, (s // period + 1) * period)
-        out.append((s // period - first_seed // period, s, stop - s))
+        stop = min(end, anchor + ((s - anchor) // period + 1) * period)
+        out.append(((s - anchor) // period - (first - anchor) // period, s, stop - s))
         s = stop
     return out
 
@@ -281,11 +290,11 @@ def evaluation_blocks(exp, overrides: dict, seed: int, episodes: int) -> list[tu
     if not period or not callable(more) or episodes <= period:
         return [(overrides, seed, episodes)]
     out = []
-    for block, start in enumerate(range(seed, seed + episodes, period)):  # period consecutive seeds: distinct
+    for block, start, n in seed_blocks(seed, episodes, period, anchor=seed):
         extra = more(block) if block else {}
         if extra:
             check_env_options(exp, {**overrides, **extra}, source=exp.source, key="eval.env")
-        out.append(({**overrides, **extra}, start, min(period, seed + episodes - start)))
+        out.append(({**overrides, **extra}, start, n))
     return out
 
 

@@ -91,17 +91,17 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     runs = dict(num_envs=s.num_envs, progress=progress, parallel=s.parallel)
     report = {"recipe": exp.recipe.name, "episodes": s.episodes, "seed": s.seed, "protocols": {}}
     calibrations: dict[str, dict] = {}  # per detector section: calibrated once, on ID rollouts
-    for name in s.protocols:  # every protocol's controller is built once first: a part the env cannot serve
-        protocol = get_protocol(name)  # (e.g. an oracle on a real robot) is refused before any rollout
-        overrides = env_overrides(exp, protocol, cfg.max_steps)
-        exp.make_controller(detector=protocol.detector, imagine=protocol.imagine,
-                            tracker=protocol.tracker and not overrides.get("oracle_tracking", False)).close()
+    # every protocol's controller is built before any rollout: a part the env cannot serve (e.g. an oracle on
+    # a real robot) is refused before the first episode runs
+    plan = []
     for name in s.protocols:
         protocol = get_protocol(name)
         overrides = env_overrides(exp, protocol, cfg.max_steps)
         # where the env's own oracle tracks, the controller does not track too
         tracker = protocol.tracker and not overrides.get("oracle_tracking", False)
-        ctrl = exp.make_controller(detector=protocol.detector, imagine=protocol.imagine, tracker=tracker)
+        plan.append((name, protocol, overrides,
+                     exp.make_controller(detector=protocol.detector, imagine=protocol.imagine, tracker=tracker)))
+    for name, protocol, overrides, ctrl in plan:
         section = _detector_section(exp, protocol)
         if not isinstance(ctrl.detector, Calibratable) and callable(getattr(ctrl.detector, "calibrate", None)):
             import warnings

@@ -48,36 +48,41 @@ class ResultStore:
         """The stored result of ``run``, whatever recipe made it, if it is whole; else None."""
         return read_complete(self.path(run))
 
-    def _current(self, run: RunSpec) -> dict | None:
-        """The stored result of ``run`` if it is whole and made for the run's current recipe. One stored under
-        the hash of before version 2 (``RunSpec.legacy_hash``) is restamped with today's hash (best effort: a
-        read-only results folder still reads it), so a later change of a setting the hash now leaves out
-        (logging, a recipe's eval.episodes the suite overrides) keeps it."""
-        data = self._complete(run)
-        if data is None or data.get("recipe_hash") not in (run.recipe_hash, run.legacy_hash):
+    def _current(self, run: RunSpec, data: dict | None) -> dict | None:
+        """``data`` (a whole stored result of ``run``) if it was made for the run's current recipe, else None.
+        One stored under the hash of before version 2 (``RunSpec.legacy_hash``) is restamped with today's hash
+        (best effort: a read-only results folder still reads it), so a later change of a setting the hash now
+        leaves out (logging, a recipe's eval.episodes the suite overrides) keeps it."""
+        if data is None:
             return None
-        if data["recipe_hash"] != run.recipe_hash:
-            data = {**data, "recipe_hash": run.recipe_hash}
-            try:
-                text = results_json.dumps(data)
-                atomic_write(self.path(run), lambda f: f.write(text), binary=False)
-            except OSError:
-                pass
+        current = run.recipe_hash
+        if data.get("recipe_hash") == current:
+            return data
+        if data.get("recipe_hash") != run.legacy_hash:
+            return None
+        data = {**data, "recipe_hash": current}
+        try:
+            self._write(run, data)
+        except OSError:
+            pass
         return data
 
     def load(self, run: RunSpec) -> dict | None:
         """The stored result of ``run`` if it is complete and made for the run's current recipe, else None."""
-        return self._current(run)
+        return self._current(run, self._complete(run))
 
     def status(self, run: RunSpec) -> str:
         """``"done"`` (a valid result is stored), ``"stale"`` (one is stored for another recipe: the run goes
         again) or ``"missing"`` (none, or a half-written or corrupt one)."""
-        if self._complete(run) is None:
+        data = self._complete(run)
+        if data is None:
             return "missing"
-        return "done" if self._current(run) is not None else "stale"
+        return "done" if self._current(run, data) is not None else "stale"
 
     def save(self, run: RunSpec, result: dict) -> Path:
-        data = {"format": FORMAT, "complete": True, "recipe_hash": run.recipe_hash, **result}
+        return self._write(run, {"format": FORMAT, "complete": True, "recipe_hash": run.recipe_hash, **result})
+
+    def _write(self, run: RunSpec, data: dict) -> Path:
         text = results_json.dumps(data)
         return atomic_write(self.path(run), lambda f: f.write(text), binary=False)
 

@@ -512,9 +512,9 @@ class FrankaEnv(PointCloudEnv):
         steps = self.config.settle_steps if settle_steps is None else int(settle_steps)
         if steps < 1:
             raise ValueError(f"settle_steps must be >= 1; got {steps}")
-        held = self.backend.grasped() if self._is_sim else np.zeros(len(self._task.object_names), dtype=bool)
         if self._halted:
             return np.zeros(3)
+        held = self.backend.grasped() if self._is_sim else np.zeros(len(self._task.object_names), dtype=bool)
         try:
             applied = self.control.shift(delta, safe_lift=safe_lift, max_steps=steps)
         except RobotMotionError as err:  # stopped part-way: what the arm did is unknown, the target is not moved
