@@ -13,7 +13,9 @@ its ``"ood"`` role ([B] bool), a tracker its ``"offsets"`` role ([B, K, 3]
 metres per tracked object; K is how many objects the controller tracks).
 What they read is theirs to declare in ``in_keys``: the env's observation,
 and what the controller writes before calling them: ``("ddp", "discrepancy")``
-[B] for the detector, and, when there is a tracker, ``("ddp", "recovered")``
+[B] for the detector, ``("ddp", "episode_key")`` [B] (int64: the episode's random key, from the
+controller's seed and the episode's; a part that draws at random keys its draws by it, so they do not
+depend on the batch) for both, and, when there is a tracker, ``("ddp", "recovered")``
 [B, K] (objects already recovered) for the detector too (the tracker runs first).
 """
 
@@ -142,6 +144,8 @@ class Env(Protocol):
     occlusion) carry no truth (a real robot); detectors and trackers that read them are then refused.
     ``judges_success() -> bool``: False where the env's ``success`` flag means nothing (a real robot: a person
     judges); evaluations then report success as not judged (None), not as 0 %.
+    Optional, on the env itself: ``episode_seed`` (int), the seed of the current episode; ``ChunkedEnv`` passes it on
+    and the controller keys the episode's random streams by it (without it, by the order episodes start in).
     """
 
     action_hold: Any  # ddp.safety.HoldSpec: how its actions hold still (controller.on_nonfinite: hold)

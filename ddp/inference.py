@@ -18,7 +18,11 @@ so nothing can flag an episode's first chunk from D_R-I), ``point_dims``
 ``forecast_samples`` K > 1 (the forecast is then the mean of K world-model
 samples), ``latent_pred_std`` [B, M, D], their spread.
 
-World-model forecasts use their own random stream (``seed`` + 1), apart from the policy's. Where every
+Random streams are per episode: each environment's policy noise and world-model noise (two streams) are
+seeded from the controller's ``seed`` and the episode's ``episode_seed`` (from the env; without one, the
+order in which episodes start), and ``("ddp", "episode_key")`` [B] (int64, written before the tracker and
+detector run) carries the episode's key to parts that draw at random (the substitution detector). So an
+episode draws the same noise whatever ``--num-envs`` and env row run it, and training seeds draw apart. Where every
 cycle needs one (a D_R-I detector, or ``forecast_every_cycle``) it is made right after the chunk is
 chosen, and with ``async_forecast`` (the default) in a background thread while the environment
 executes the chunk: the robot waits only for encode, detect and the policy, and the results are
@@ -58,12 +62,12 @@ from ddp.contracts import check as check_contract
 from ddp.detectors.scores import ScoreSpec, residual_score
 from ddp.errors import RecipeError
 from ddp.keys import KeyedModule
+from ddp.rng import ACTIONS, FORECASTS, generator, mix
 from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite
 
 MIN_OFFSET = 1e-6  # metres: smaller tracked offsets mean "did not move"
 #: metres: after a resume_after_recovery, a tracked offset this far from the accepted one is a new displacement
 NEW_DISPLACEMENT = 0.02
-FORECAST_STREAM = 1  # the world model's noise is seeded with seed + FORECAST_STREAM (the policy's with seed)
 
 
 @dataclass
@@ -98,13 +102,16 @@ class EnvState:
     # objects no subtask targets left where they are; only a displacement beyond them re-enters OOD
     accepted: torch.Tensor | None = None
     last_action: torch.Tensor | None = None  # the last finite action emitted (what "hold" repeats)
+    key: int | None = None  # the episode's random key (ddp.rng.mix of the controller's seed and the episode's)
+    rng: torch.Generator | None = None  # the policy's sampling noise, this episode's stream
+    forecast_rng: torch.Generator | None = None  # the world model's forecast noise, this episode's stream
 
 
 class DDPController(KeyedModule):
     """Detect (D_R-I) -> track -> imagine -> recover, around a trained DreamDiffusionPolicy."""
 
     default_in_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos", "chunk_index": "chunk_index",
-                       "ee_shift_applied": "ee_shift_applied"}
+                       "ee_shift_applied": "ee_shift_applied", "episode_seed": "episode_seed"}
     default_out_keys = {
         "action": "action",
         "ee_shift": "ee_shift",
@@ -116,6 +123,7 @@ class DDPController(KeyedModule):
         "latent_real": ("ddp", "latent_real"),
         "latent_pred": ("ddp", "latent_pred"),
         "point_dims": ("ddp", "point_dims"),
+        "episode_key": ("ddp", "episode_key"),
         "latent_pred_std": ("ddp", "latent_pred_std"),
     }
 
@@ -217,13 +225,26 @@ class DDPController(KeyedModule):
     def reset(self) -> None:
         self._drop_forecast("reset")  # a forecast for the previous episodes
         self.states: list[EnvState] = []
-        self.generator = torch.Generator(device=self.device).manual_seed(self.seed)
-        self.forecast_generator = torch.Generator(device=self.device).manual_seed(self.seed + FORECAST_STREAM)
+        self._episodes_started = 0  # numbers the episodes of envs that do not tell their episode_seed
         for part in (self.detector, self.tracker, self.recovery):  # each contract has reset()
             if part is not None:
                 part.reset()
 
     # ------------------------------------------------------------------ helpers
+    def _seed_episodes(self, td: TensorDictBase, dev: torch.device) -> None:
+        """Give each episode that starts its random streams, keyed by the controller's seed and the episode's
+        ``episode_seed`` (the env's; without it, the count of episodes started), on the model's device."""
+        seeds = td.get(self.key("episode_seed"), None)
+        for b, s in enumerate(self.states):
+            if s.key is None:
+                if seeds is not None:
+                    s.key = mix(self.seed, int(seeds[b].reshape(-1)[0]))
+                else:
+                    s.key = mix(self.seed, -1, self._episodes_started)
+                    self._episodes_started += 1
+            if s.rng is None or s.rng.device != dev:  # new, or the model moved: the episode's streams afresh
+                s.rng, s.forecast_rng = generator(mix(s.key, ACTIONS), dev), generator(mix(s.key, FORECASTS), dev)
+
     def _trigger(self, s: EnvState):
         if self.recovery is not None and self.recovery.trigger_chunk is not None:
             return ("chunk", self.recovery.trigger_chunk)
@@ -316,22 +337,23 @@ class DDPController(KeyedModule):
             return chunk >= trig[1] and s.subtask_start < trig[1] and s.subtask < len(self.subtasks)
         return trig.fired(obs, chunk, chunk - s.subtask_start)
 
-    def _imagine(self, history: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """O_pred = W_phi(O_curr, a_t), batched: the forecast and, with K > 1 samples, their spread.
+    def _imagine(self, history: torch.Tensor, actions: torch.Tensor,
+                 generators: list[torch.Generator]) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """O_pred = W_phi(O_curr, a_t), batched: the forecast and, with K > 1 samples, their spread (each
+        environment's noise from its episode's forecast stream, ``generators``).
 
         Runs in the calling thread or the background one (grad mode is per thread, hence no_grad here).
         """
         with torch.no_grad():
             k = self.forecast_samples
             if k == 1:
-                return self.model.imagine(history, actions, generator=self.forecast_generator), None
+                return self.model.imagine(history, actions, generator=generators), None
             # K samples in one batched call: their mean is the forecast, their std its uncertainty
-            samples = self.model.imagine(history.repeat(k, 1, 1), actions.repeat(k, 1, 1),
-                                         generator=self.forecast_generator)
+            samples = self.model.imagine(history.repeat(k, 1, 1), actions.repeat(k, 1, 1), generator=generators * k)
             samples = samples.reshape(k, history.shape[0], *samples.shape[1:])
             return samples.mean(0), samples.std(0)
 
-    def _imagine_one_thread(self, history: torch.Tensor, actions: torch.Tensor):
+    def _imagine_one_thread(self, history: torch.Tensor, actions: torch.Tensor, generators: list[torch.Generator]):
         """The forecast with torch's CPU ops single-threaded while it runs, on the background thread or inline.
 
         torch's thread count is process-wide (libgomp's global setting for threads outside OpenMP). A
@@ -346,7 +368,7 @@ class DDPController(KeyedModule):
         if self.device.type == "cpu" and threads > 1:
             torch.set_num_threads(1)
         try:
-            return self._imagine(history, actions)
+            return self._imagine(history, actions, generators)
         finally:
             if torch.get_num_threads() != threads:
                 torch.set_num_threads(threads)
@@ -356,12 +378,12 @@ class DDPController(KeyedModule):
             self.states[b].predicted, self.states[b].pending = predicted[i], None
             self.states[b].spread = None if spread is None else spread[i]
 
-    def _pending(self, envs: list[int]) -> tuple[list[int], torch.Tensor, torch.Tensor] | None:
+    def _pending(self, envs: list[int]) -> tuple[list[int], torch.Tensor, torch.Tensor, list] | None:
         todo = [b for b in envs if self.states[b].pending is not None]
         if not todo or not self.model.has_world_model:
             return None
         return (todo, torch.stack([self.states[b].pending[0] for b in todo]),
-                torch.stack([self.states[b].pending[1] for b in todo]))
+                torch.stack([self.states[b].pending[1] for b in todo]), [self.states[b].forecast_rng for b in todo])
 
     def _forecast(self, envs: list[int], one_thread: bool = False) -> None:
         """O_pred = W_phi(O_curr, a_t) for the listed environments, one batched world-model call.
@@ -373,7 +395,7 @@ class DDPController(KeyedModule):
         pending = self._pending(envs)
         if pending is not None:
             imagine = self._imagine_one_thread if one_thread else self._imagine
-            self._store(pending[0], *imagine(pending[1], pending[2]))
+            self._store(pending[0], *imagine(*pending[1:]))
 
     def wait_forecast(self) -> None:
         """Block until the background forecast (``async_forecast``), if one is running, is done."""
@@ -398,7 +420,7 @@ class DDPController(KeyedModule):
             return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ddp-forecast")
-        self._job = (pending[0], self._pool.submit(self._imagine_one_thread, pending[1], pending[2]))
+        self._job = (pending[0], self._pool.submit(self._imagine_one_thread, *pending[1:]))
 
     def close(self) -> None:
         """Wait for a background forecast and stop its thread (also done when the controller is collected).
@@ -448,11 +470,10 @@ class DDPController(KeyedModule):
         for b in range(B):
             if chunk_index[b] == 0:
                 self.states[b] = EnvState()
+        self._seed_episodes(td, dev)
+        td.set(self.key("episode_key"), torch.tensor([s.key for s in self.states], dtype=torch.int64))
 
         # O_real^t = E_psi(X_real^t), on the model's device (the env's tensors may live elsewhere)
-        if self.generator.device != dev:  # the model moved since reset(): same seeds, new device
-            self.generator = torch.Generator(device=dev).manual_seed(self.seed)
-            self.forecast_generator = torch.Generator(device=dev).manual_seed(self.seed + FORECAST_STREAM)
         real = self.model.encode(point_cloud.to(dev), agent_pos.to(dev))
         # a non-finite observation, or latents that came out non-finite, are not reality: OOD
         finite = finite & torch.isfinite(real).flatten(1).all(1).cpu()
@@ -568,7 +589,7 @@ class DDPController(KeyedModule):
         )
 
         # 2. Action execution & recursive imagination
-        chunk = self.model.sample_actions(current, generator=self.generator)
+        chunk = self.model.sample_actions(current, generator=[s.rng for s in self.states])
         actions = self.model.executed_actions(chunk).cpu()
         # A robot never receives a non-finite action: an environment that can neither trust its
         # observation nor imagine, or whose actions came out non-finite, holds still (or we raise).

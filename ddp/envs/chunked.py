@@ -7,7 +7,11 @@ for none), executed *before* the chunk through ``base.shift_end_effector``.
 Observations are the base env's stacked over the last M steps
 (``point_cloud`` [M, P, 3], ``agent_pos`` [M, D]), ``privileged`` from the
 last step, ``success`` = any success so far in the episode, ``reward`` = the
-chunk's sum, and ``chunk_index`` (chunks executed since reset).
+chunk's sum, ``chunk_index`` (chunks executed since reset) and, where the base
+env tells its episode's seed (an ``episode_seed`` attribute, as every built-in
+env has), ``episode_seed`` (int64 [1]): the controller keys each episode's
+random streams by it, so an episode draws the same noise whatever env row or
+batch size runs it.
 
 The chunk and the frame stack are torchrl's own transforms on the base env:
 ``UnsqueezeTransform`` + ``CatFrames(N=M)`` stack the last M frames (the
@@ -108,6 +112,9 @@ class ChunkedEnv(EnvBase):
                 spec[key] = obs[key].clone()
         spec["success"] = Categorical(2, shape=(1,), dtype=torch.bool, device=self.device)
         spec["chunk_index"] = Unbounded(shape=(1,), dtype=torch.int64, device=self.device)
+        self._tells_seed = hasattr(base, "episode_seed")
+        if self._tells_seed:
+            spec["episode_seed"] = Unbounded(shape=(1,), dtype=torch.int64, device=self.device)
         # the end-effector shift the env executed before this chunk (the requested ee_shift, clipped to the
         # workspace), so that a recovery can undo exactly what a tracking shift did
         spec["ee_shift_applied"] = Unbounded(shape=(3,), dtype=torch.float32, device=self.device)
@@ -134,6 +141,8 @@ class ChunkedEnv(EnvBase):
         out = last.exclude("reward", "done", "terminated", "truncated", "success")
         out.set("success", torch.tensor([self._success], device=self.device))
         out.set("chunk_index", torch.tensor([self._chunk], dtype=torch.int64, device=self.device))
+        if self._tells_seed:
+            out.set("episode_seed", torch.tensor([int(self.base.episode_seed)], dtype=torch.int64, device=self.device))
         shift = torch.zeros(3) if applied is None else torch.as_tensor(applied, dtype=torch.float32).reshape(3)
         out.set("ee_shift_applied", shift.to(self.device))
         return out

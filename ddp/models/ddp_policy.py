@@ -20,6 +20,7 @@ from tensordict import TensorDict
 
 from ddp.keys import KeyedModule
 from ddp.models.normalizer import MinMaxNormalizer
+from ddp.schedulers.base import randn
 
 #: the batch key holding each window step's row in the training frames (read with ``target_refresh_every``)
 FRAME_INDEX = "frame_index"
@@ -193,13 +194,14 @@ class DreamDiffusionPolicy(KeyedModule):
 
     # ------------------------------------------------------------------ inference
     @torch.no_grad()
-    def sample_actions(self, history: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """a_{0..H-1} ~ pi_theta(. | O_{0..M-1}): latents [*, M, L] -> unnormalised actions [*, H, A]."""
+    def sample_actions(self, history: torch.Tensor, generator=None) -> torch.Tensor:
+        """a_{0..H-1} ~ pi_theta(. | O_{0..M-1}): latents [*, M, L] -> unnormalised actions [*, H, A].
+
+        ``generator``: one ``torch.Generator``, one per row of the flattened batch, or None."""
         batch_shape = history.shape[:-2]
         cond = history.reshape(-1, self.obs_steps * self.latent_dim)
-        noise = torch.randn(
-            cond.shape[0], self.horizon, self.action_dim, generator=generator, device=cond.device, dtype=cond.dtype
-        )
+        noise = randn((cond.shape[0], self.horizon, self.action_dim), generator=generator, device=cond.device,
+                      dtype=cond.dtype)
         actions = self.policy_scheduler.sample(
             lambda x, t: self.policy_net.predict(x, t, cond), noise, generator=generator
         )
@@ -212,17 +214,18 @@ class DreamDiffusionPolicy(KeyedModule):
 
     @torch.no_grad()
     def imagine(
-        self, history: torch.Tensor, actions: torch.Tensor, generator: torch.Generator | None = None
+        self, history: torch.Tensor, actions: torch.Tensor, generator=None
     ) -> torch.Tensor:
-        """O_{M..M+N-1} ~ W_phi(. | O_{0..M-1}, a): latents [*, M, L] + actions [*, N, A] -> [*, N, L]."""
+        """O_{M..M+N-1} ~ W_phi(. | O_{0..M-1}, a): latents [*, M, L] + actions [*, N, A] -> [*, N, L].
+
+        ``generator``: one ``torch.Generator``, one per row of the flattened batch, or None."""
         if not self.has_world_model:
             raise RuntimeError("this model has no world model (world_model.enabled is false)")
         batch_shape = history.shape[:-2]
         cond = history.reshape(-1, self.obs_steps * self.latent_dim)
         executed = self.normalizer.normalize("action", actions).reshape(cond.shape[0], -1)
-        noise = torch.randn(
-            cond.shape[0], self.action_steps, self.latent_dim, generator=generator, device=cond.device, dtype=cond.dtype
-        )
+        noise = randn((cond.shape[0], self.action_steps, self.latent_dim), generator=generator, device=cond.device,
+                      dtype=cond.dtype)
         future = self.world_model_scheduler.sample(
             lambda x, t: self.world_model_net.predict(x, t, executed, cond), noise, generator=generator
         )

@@ -13,9 +13,11 @@ no parameters) that owns one generative process:
 shape ``[B]`` holding the value the network embeds (the integer step ``k``
 for DDPM/DDIM, ``t * time_scale`` for consistency flow).
 
-Random draws go through one ``torch.Generator`` when one is given. They are
-made on the generator's device and then moved to the sample's device, the
-way diffusers' ``randn_tensor`` does, so seeded runs match it.
+Random draws go through a ``torch.Generator`` when one is given, or a
+sequence of them, one per batch row (each row keeps its own stream: the
+controller's per-episode noise, :mod:`ddp.rng`). They are made on the
+generator's device and then moved to the sample's device, the way diffusers'
+``randn_tensor`` does, so seeded runs match it.
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ import math
 from typing import Callable, NamedTuple
 
 import torch
+
+from ddp.rng import per_row
 
 #: ``model_fn(x_t, t) -> prediction`` with ``x_t: [B, ...]`` and ``t: [B]`` (float).
 ModelFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -59,25 +63,31 @@ class Scheduler(abc.ABC):
 # ---------------------------------------------------------------- random draws
 
 
-def randn(shape, *, generator: torch.Generator | None, device, dtype) -> torch.Tensor:
-    """Standard normal noise, drawn on the generator's device then moved."""
+def _draw(fn, shape, generator, device, **kwargs) -> torch.Tensor:
+    """``fn(shape)`` drawn on the generator's device then moved; a sequence of generators draws row ``i``
+    of the leading dim from generator ``i`` (a batch whose rows each keep their own stream)."""
     if generator is None:
-        return torch.randn(shape, device=device, dtype=dtype)
-    return torch.randn(shape, generator=generator, device=generator.device, dtype=dtype).to(device)
+        return fn(shape, device=device, **kwargs)
+    if isinstance(generator, torch.Generator):
+        return fn(shape, generator=generator, device=generator.device, **kwargs).to(device)
+    shape = tuple(shape)
+    rows = per_row(generator, shape[0])
+    return torch.stack([fn(shape[1:], generator=g, device=g.device, **kwargs).to(device) for g in rows])
 
 
-def rand(shape, *, generator: torch.Generator | None, device, dtype) -> torch.Tensor:
-    """Uniform noise in [0, 1), drawn on the generator's device then moved."""
-    if generator is None:
-        return torch.rand(shape, device=device, dtype=dtype)
-    return torch.rand(shape, generator=generator, device=generator.device, dtype=dtype).to(device)
+def randn(shape, *, generator, device, dtype) -> torch.Tensor:
+    """Standard normal noise from ``generator`` (one, one per row of ``shape[0]``, or None)."""
+    return _draw(torch.randn, shape, generator, device, dtype=dtype)
 
 
-def randint(high: int, shape, *, generator: torch.Generator | None, device) -> torch.Tensor:
-    """Integers in [0, high), drawn on the generator's device then moved."""
-    if generator is None:
-        return torch.randint(0, high, shape, device=device)
-    return torch.randint(0, high, shape, generator=generator, device=generator.device).to(device)
+def rand(shape, *, generator, device, dtype) -> torch.Tensor:
+    """Uniform noise in [0, 1) from ``generator`` (one, one per row of ``shape[0]``, or None)."""
+    return _draw(torch.rand, shape, generator, device, dtype=dtype)
+
+
+def randint(high: int, shape, *, generator, device) -> torch.Tensor:
+    """Integers in [0, high) from ``generator`` (one, one per row of ``shape[0]``, or None)."""
+    return _draw(lambda sh, **kw: torch.randint(0, high, sh, **kw), shape, generator, device)
 
 
 def expand_as_batch(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
