@@ -114,6 +114,40 @@ def test_generate_demos_gives_up_with_a_clear_error():
         generate_demos(LineEnv, line_expert, episodes=0, seed=0, max_steps=5)
 
 
+class BlockLineEnv(LineEnv):
+    """LineEnv whose 5 states (seed % 5) start 0.01 * block further along in block ``block``: another draw."""
+
+    def __init__(self, block=0):
+        super().__init__()
+        self.block = block
+
+    def _reset(self, td=None, **kwargs):
+        out = super()._reset(td, **kwargs)
+        self.x += 0.01 * self.block
+        return self._obs()
+
+
+def test_attempts_past_the_states_of_a_draw_move_to_another_draw():
+    """5 states per draw, state 4 unreachable: 5 demos need 6 attempts; the 6th must not replay state 0."""
+    kwargs = dict(episodes=5, seed=0, max_steps=20, progress=False, stop_after_success=0)
+    old, old_stats = generate_demos(BlockLineEnv, line_expert, **kwargs)
+    assert old_stats["seeds"] == [0, 1, 2, 3, 5]
+    assert (old.episode(4) == old.episode(0)).all()  # what happened before: seed 5 replayed seed 0's demo
+    built = []
+
+    def block_env(block):
+        built.append(block)
+        return BlockLineEnv(block)
+
+    demos, stats = generate_demos(BlockLineEnv, line_expert, **kwargs, states_per_draw=5, make_block_env=block_env)
+    assert stats["seeds"] == [0, 1, 2, 3, 5] and stats["blocks"] == [0, 0, 0, 0, 1] and built == [1]
+    assert stats["states_per_draw"] == 5
+    starts = [float(demos.episode(i)["agent_pos"][0]) for i in range(5)]
+    assert len(set(starts)) == 5 and starts[4] == pytest.approx(0.01)  # state 0 of draw 1
+    with pytest.raises(ValueError, match="needs to be >= 1 and a make_block_env"):
+        generate_demos(BlockLineEnv, line_expert, **kwargs, states_per_draw=5)
+
+
 # ------------------------------------------------------------ episodes_dir
 
 
@@ -272,6 +306,33 @@ def test_eval_only_env_options_leave_the_demo_cache_alone(mw_cache):
     assert "pause_fingers" not in params["env_config"]
     paused = _source({**_mw_recipe(source.path.parent), "env": {**SMALL_ENV, "pause_fingers": True}})
     assert paused.generation_params()["env_config_hash"] == params["env_config_hash"]
+
+
+def test_metaworld_demo_caches_that_replayed_states_are_regenerated(mw_cache):
+    import copy
+
+    from ddp.envs.metaworld import MetaWorldEnv, MetaWorldEnvConfig
+
+    _, source, _ = mw_cache
+    meta = source.cached_meta()
+    assert meta is not None and meta["stats"]["states_per_draw"] == 50 and meta["stats"]["blocks"] == [0, 0, 0]
+    old = copy.deepcopy(meta)
+    del old["stats"]["states_per_draw"]
+    assert source._matches(old)  # written before the fix, every attempt within one draw: the same demos
+    old["stats"]["seeds"] = [0, 1, 50]  # attempt 50 replayed state 0 (soccer's cache had seven such)
+    assert not source._matches(old)
+    fixed = copy.deepcopy(old)
+    fixed["stats"]["states_per_draw"] = 50  # the present code drew seed 50 from another draw
+    assert source._matches(fixed)
+    # that draw's states are others: seed 50 there is not seed 0 here
+    cfg = MetaWorldEnvConfig(task="button-press", render_point_cloud=False)
+    states = []
+    for config, seed in ((cfg, 0), (dataclasses.replace(cfg, **cfg.demo_initial_states(1)), 50)):
+        env = MetaWorldEnv(config)
+        states.append(env.reset(seed=seed)["privileged", "state"])
+        env.close()
+    assert not torch.allclose(states[0], states[1])
+    assert cfg.demo_initial_states(1) == {"seed_tasks": 500}
 
 
 def test_metaworld_cache_is_replaced_atomically(tmp_path, monkeypatch):

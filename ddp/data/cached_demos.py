@@ -205,10 +205,28 @@ class CachedExpertDemos:
             "env_config_hash": _digest(env_cfg),
         }
 
+    @property
+    def states_per_draw(self) -> int | None:
+        """Seeds this far apart repeat an initial state in the demo env (None: they never do, or the env config
+        has no ``demo_initial_states(block)`` to draw further ones from)."""
+        period = getattr(self.env_config, "initial_states_per_draw", None)
+        return period if period is not None and callable(getattr(self.env_config, "demo_initial_states", None)) else None
+
     def _matches(self, meta: dict) -> bool:
         want = self.generation_params()
         keys = ("format", "version", "task", "seed", "max_steps", "stop_after_success", "env_config_hash")
-        return all(meta.get(k) == want[k] for k in keys) and int(meta.get("episodes", 0)) >= self.cfg.episodes
+        if not (all(meta.get(k) == want[k] for k in keys) and int(meta.get("episodes", 0)) >= self.cfg.episodes):
+            return False
+        return not self._replays_states(meta)
+
+    def _replays_states(self, meta: dict) -> bool:
+        """A cache written before attempts moved to another draw past ``states_per_draw``: its seeds that far
+        past the first one replayed earlier states (the same demo twice), so it is regenerated. Caches whose
+        attempts all fit one draw are what the present code makes, and stay."""
+        period, stats = self.states_per_draw, meta.get("stats")
+        if period is None or not isinstance(stats, dict) or "states_per_draw" in stats:
+            return False
+        return any(int(s) - self.seed >= period for s in stats.get("seeds", []))
 
     def cached_meta(self) -> dict | None:
         """The cache's generation.json if it matches this config, else None."""
@@ -226,6 +244,11 @@ class CachedExpertDemos:
         """The env with the demo config (point cloud rendered at every step)."""
         return self.env_part.plugin.factory(self.env_config, seed=self.seed)
 
+    def make_block_env(self, block: int):
+        """The demo env drawing block ``block``'s initial states (the env config's ``demo_initial_states``)."""
+        config = dataclasses.replace(self.env_config, **self.env_config.demo_initial_states(block))
+        return self.env_part.plugin.factory(config, seed=self.seed)
+
     def generate(self, progress: bool = True) -> tuple[Episodes, dict]:
         """Generate the demos in memory (no cache): ``(episodes, stats)``."""
         demos, stats = generate_demos(
@@ -240,6 +263,8 @@ class CachedExpertDemos:
             max_attempts=self.cfg.max_attempts,
             record_keys=self.record_keys,
             desc=f"demos {self.label}",
+            states_per_draw=self.states_per_draw,
+            make_block_env=self.make_block_env,
         )
         self.stats = stats
         return demos, stats

@@ -88,6 +88,8 @@ def generate_demos(
     max_attempts: int | None = None,
     record_keys: Mapping[str, NestedKey] | None = None,
     desc: str = "demos",
+    states_per_draw: int | None = None,
+    make_block_env: Callable[[int], Any] | None = None,
 ) -> tuple[Episodes, dict]:
     """Roll ``expert`` out in an env until ``episodes`` episodes are kept.
 
@@ -106,12 +108,18 @@ def generate_demos(
         record_keys: episode key -> observation key (default point_cloud and agent_pos);
             ``"action"`` is always recorded.
         desc: progress bar label.
+        states_per_draw: for an env whose seeds repeat an initial state this many seeds apart (MetaWorld:
+            50): attempt ``i`` then runs in ``make_block_env(i // states_per_draw)`` (block 0: ``make_env``),
+            an env drawing other initial states, so that no two attempts start from one state (an expert
+            that failed on some states would otherwise record the first states' demos twice).
+        make_block_env: ``block -> env`` for those further blocks (needed with ``states_per_draw``).
 
     Returns:
         ``(Episodes, stats)``: steps with the ``record_keys`` and ``"action"``; stats
         ``attempts, successes, success_rate, episodes, steps, mean_length,
         mean_first_success, failed_seeds, seeds, simulated_steps, seconds, seconds_per_episode,
-        seconds_per_step`` (per simulated step, failed attempts included).
+        seconds_per_step`` (per simulated step, failed attempts included), and with ``states_per_draw``
+        ``states_per_draw`` and ``blocks`` (each kept episode's block).
     """
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1; got {episodes}")
@@ -122,6 +130,8 @@ def generate_demos(
     limit = max_attempts if max_attempts is not None else 2 * episodes + 10
     if limit < episodes:
         raise ValueError(f"max_attempts ({limit}) must be >= episodes ({episodes})")
+    if states_per_draw is not None and (states_per_draw < 1 or make_block_env is None):
+        raise ValueError(f"states_per_draw ({states_per_draw}) needs to be >= 1 and a make_block_env")
     keys = dict(DEFAULT_RECORD_KEYS if record_keys is None else record_keys)
     if "action" in keys:
         raise ValueError("record_keys must not contain 'action' (actions are always recorded)")
@@ -130,8 +140,8 @@ def generate_demos(
 
     start = time.perf_counter()
     kept: list[TensorDict] = []
-    seeds, failed, first_success = [], [], []
-    attempts = successes = simulated = 0
+    seeds, failed, first_success, blocks = [], [], [], []
+    attempts = successes = simulated = block = 0
     env = make_env()
     bar = tqdm(total=episodes, desc=desc, unit="ep", disable=not progress, dynamic_ncols=True)
     try:
@@ -143,6 +153,10 @@ def generate_demos(
                     f"in this env (failed seeds: {failed[:10]}{' ...' if len(failed) > 10 else ''})"
                 )
             ep_seed = seed + attempts
+            if states_per_draw is not None and attempts // states_per_draw != block:
+                block = attempts // states_per_draw  # every state of the last draw was tried: the next draw
+                env.close()
+                env = make_block_env(block)
             arrays, ok, first = _rollout(env, expert, ep_seed, max_steps, stop_after_success, keys)
             attempts += 1
             simulated += arrays["action"].shape[0]
@@ -155,6 +169,7 @@ def generate_demos(
                 length = arrays["action"].shape[0]
                 kept.append(TensorDict({k: torch.from_numpy(v) for k, v in arrays.items()}, batch_size=[length]))
                 seeds.append(ep_seed)
+                blocks.append(block)
                 bar.update(1)
             bar.set_postfix(attempts=attempts, success=f"{successes / attempts:.0%}")
     finally:
@@ -178,6 +193,8 @@ def generate_demos(
         "simulated_steps": simulated,
         "seconds_per_step": seconds / max(1, simulated),
     }
+    if states_per_draw is not None:
+        stats.update(states_per_draw=states_per_draw, blocks=blocks)
     return demos, stats
 
 

@@ -90,6 +90,8 @@ __all__ = ["MetaWorldEnvConfig", "MetaWorldEnv"]
 NUM_TRAIN_TASKS = 50  # MT1 builds 50 fixed initial states per task
 #: MT1 draws of evaluation seeds past the first 50 are this far apart (calibration uses the draws right after)
 EVALUATION_DRAW_STRIDE = 1000
+#: MT1 draws of demo attempts past the first 50 (an expert that failed on some states) are this far apart
+DEMO_DRAW_STRIDE = 500
 
 
 def _import_sim():
@@ -224,6 +226,15 @@ class MetaWorldEnvConfig(ObservationOptions):
         if block < 1:
             raise ValueError(f"block must be >= 1; got {block}")
         return {"seed_tasks": self.seed_tasks + EVALUATION_DRAW_STRIDE * block}
+
+    def demo_initial_states(self, block: int) -> dict:
+        """Overrides for demo attempts past this config's ``initial_states_per_draw`` (block 1, 2, ...; an
+        expert that failed on some states needs more attempts than there are states): another MT1 draw
+        (``seed_tasks + 500 * block``), apart from the evaluation's and the calibration's, so that no two
+        demos start from one state (attempt 50 replayed state 0: the same demo twice)."""
+        if block < 1:
+            raise ValueError(f"block must be >= 1; got {block}")
+        return {"seed_tasks": self.seed_tasks + DEMO_DRAW_STRIDE * block}
 
     @property
     def initial_states_per_draw(self) -> int:
