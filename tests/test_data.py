@@ -93,6 +93,14 @@ def test_damaged_episode_directories_are_one_line_errors(tmp_path):
     torch.save(torch.tensor([6, 15, 21]), d / "episode_ends.pt")
     with pytest.raises(DDPError, match=r"mismatch: episode_ends must .* against the 22 stored steps"):
         Episodes.load(d)
+    d = fresh("truncated")  # an interrupted copy: the action file cut short
+    action = d / "steps" / "action.memmap"
+    whole = action.stat().st_size
+    with open(action, "r+b") as f:
+        f.truncate(whole // 2)
+    with pytest.raises(DDPError, match=rf"action.memmap: holds {whole // 2} bytes where its shape \[22, .*needs {whole}"):
+        Episodes.load(d)
+    assert action.stat().st_size == whole // 2  # refused before mapping: the file is left as it was
 
 
 def test_sequence_dataset_batches_match_items():

@@ -335,6 +335,18 @@ def test_metaworld_demo_caches_that_replayed_states_are_regenerated(mw_cache):
     assert cfg.demo_initial_states(1) == {"seed_tasks": 500}
 
 
+def test_a_generation_file_of_another_shape_is_no_match(mw_cache, tmp_path):
+    import json
+
+    _, source, _ = mw_cache
+    meta = source.cached_meta()
+    other = _source(_mw_recipe(tmp_path))
+    other.path.mkdir(parents=True)
+    for bad in ([1, 2], "text", {**meta, "episodes": "many"}, {**meta, "stats": {"seeds": ["x"]}}):
+        (other.path / "generation.json").write_text(json.dumps(bad))
+        assert other.cached_meta() is None, bad  # regenerated, not a traceback
+
+
 def test_metaworld_cache_is_replaced_atomically(tmp_path, monkeypatch):
     pytest.importorskip("metaworld")
     from ddp.data.sources.metaworld_expert import MetaWorldExpertDemos

@@ -237,7 +237,10 @@ class CachedExpertDemos:
             meta = json.loads(meta_file.read_text())
         except (OSError, ValueError):
             return None
-        return meta if self._matches(meta) else None
+        try:  # a generation.json of another shape (a list, a text count): not this config's cache
+            return meta if isinstance(meta, dict) and self._matches(meta) else None
+        except (TypeError, ValueError, AttributeError):
+            return None
 
     # ------------------------------------------------------------ generation
     def make_env(self):

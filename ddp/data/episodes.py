@@ -81,6 +81,7 @@ class Episodes:
         found = meta.get("format") if isinstance(meta, dict) else None
         if found != FORMAT:
             raise DDPError(f"{path}: meta.json format is {found!r}, expected {FORMAT!r}")
+        _check_leaf_files(path / "steps")  # a truncated file would map as zeros (and be extended on disk)
         try:  # tensors only: a pickled leaf (tensordict's other.pickle) would run code when loaded
             steps = TensorDict.load_memmap(path / "steps", allow_pickle=False)
         except RuntimeError as err:
@@ -103,3 +104,31 @@ class Episodes:
             return cls(steps, ends)
         except ValueError as err:
             raise DDPError(f"{path}: {err} (episode_ends.pt against the {steps.batch_size[0]} stored steps)") from None
+
+
+def _check_leaf_files(steps: Path) -> None:
+    """Each memory-mapped leaf file holds exactly the bytes its shape and dtype in the TensorDict's
+    meta.json need: a file cut short (an interrupted copy, a full disk) is a one-line error, where
+    mapping it would read zeros past its end and grow the file to fit."""
+    meta_file = steps / "meta.json"
+    try:
+        meta = json.loads(meta_file.read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return  # tensordict's own loader reports a missing or damaged meta.json
+    if not isinstance(meta, dict):
+        return
+    for key, leaf in meta.items():
+        if isinstance(leaf, dict) and "shape" in leaf and isinstance(leaf.get("dtype"), str):
+            file = steps / f"{key}.memmap"
+            dtype = getattr(torch, leaf["dtype"].removeprefix("torch."), None)
+            if not file.is_file() or not isinstance(dtype, torch.dtype):
+                continue  # not a plain memory-mapped leaf: the loader decides
+            numel = 1
+            for n in leaf["shape"]:
+                numel *= int(n)
+            need, size = numel * dtype.itemsize, file.stat().st_size
+            if size != need:
+                raise DDPError(f"{file}: holds {size} bytes where its shape {list(leaf['shape'])} "
+                               f"({leaf['dtype']}) needs {need}: a damaged or cut-short episode file")
+        elif (steps / key).is_dir():
+            _check_leaf_files(steps / key)
