@@ -56,6 +56,26 @@ def test_how_a_run_is_evaluated_is_not_part_of_its_hash(suite_file):
     assert type(run)(**{**run.__dict__, "recipe": trained}).recipe_hash == run.recipe_hash
 
 
+def test_an_env_option_written_at_its_neutral_default_is_the_same_run(suite_file):
+    """recipes/metaworld/quickstart_ddp.yaml spells out pause_fingers: false; the CPU suites' stored runs of it
+    (hashed without the key) stay done. Any other value, or an option without a neutral default, is another run."""
+    pytest.importorskip("metaworld")
+    run = load_suite(suite_file).runs[0]
+
+    def with_env(**env):
+        recipe = copy.deepcopy(run.recipe)
+        recipe["env"] = {"name": "metaworld", "task": "push", **env}
+        return type(run)(**{**run.__dict__, "recipe": recipe})
+
+    base = with_env()
+    assert with_env(pause_fingers=False).recipe_hash == base.recipe_hash
+    assert with_env(visible_sites=[]).recipe_hash == base.recipe_hash
+    assert with_env(pause_fingers=True).recipe_hash != base.recipe_hash
+    assert with_env(visible_sites=["goal"]).recipe_hash != base.recipe_hash
+    assert with_env(num_points=512).recipe_hash != base.recipe_hash  # no neutral default: written is another run
+    assert with_env(pause_fingers=False).legacy_hash != base.legacy_hash  # version 1 stays what it was
+
+
 def test_results_stored_under_the_first_hash_are_kept_and_restamped(suite_file, tmp_path):
     """Results stored before hash version 2 (every committed suite result) stay done, and are restamped, so a
     later change of a setting the hash now leaves out does not make them stale."""

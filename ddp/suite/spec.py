@@ -34,8 +34,8 @@ from ddp.errors import RecipeError
 __all__ = ["RunSpec", "SuiteSpec", "load_suite"]
 
 #: recipe settings that say how a run is evaluated, not what it measures: left out of its hash, so a suite
-#: can step its environments as a batch (``eval.num_envs``: the same episodes and seeds, other sampling
-#: noise, about half the evaluation time on a CPU), move them to another device or record videos without
+#: can step its environments as a batch (``eval.num_envs``: the same episodes, seeds and noise, about half
+#: the evaluation time on a CPU), move them to another device or record videos without
 #: running again what is stored (``eval.output_dir`` stays in: the suite derives it from the run's id, and
 #: results stored before this list existed keep their hash)
 EXECUTION_ONLY = {"eval": ("num_envs", "parallel", "device", "video", "video_episodes", "video_size", "video_fps",
@@ -44,6 +44,23 @@ EXECUTION_ONLY = {"eval": ("num_envs", "parallel", "device", "video", "video_epi
 #: a suite may checkpoint more often so that --time-limit loses less), and a recipe's own eval.protocols /
 #: eval.episodes where the suite sets them (the suite's values are the ones evaluated)
 NOT_MEASURED = {"train": ("checkpoint_every_epochs", "log_every_steps", "logger")}
+#: and env options written at the value their env config declares neutral (``cache_neutral_defaults``: options
+#: added after results were stored, whose default is what ran before), so that a recipe may spell out such a
+#: default (``env.pause_fingers: false``) without making its stored runs another run
+
+
+def _neutral_env_options(recipe: dict) -> dict:
+    """The env config's ``cache_neutral_defaults`` for the recipe's env plugin (none when it is unknown)."""
+    env = recipe.get("env")
+    if not isinstance(env, dict) or not isinstance(env.get("name"), str):
+        return {}
+    from ddp import registry
+
+    try:
+        config_cls = registry.get("env", env["name"]).config_cls
+    except Exception:  # noqa: BLE001 - an unknown env is reported where the recipe is built, not here
+        return {}
+    return dict(getattr(config_cls, "cache_neutral_defaults", None) or {})
 
 KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "results_dir", "reference"}
 
@@ -51,6 +68,13 @@ KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "r
 def _plain(label) -> bool:
     """Letters, digits, '-' and '_' only (a name that is safe in a path and in a comma-separated list)."""
     return isinstance(label, str) and bool(label) and label.replace("-", "").replace("_", "").isalnum()
+
+
+def _same(value, default) -> bool:
+    """A recipe value equals a neutral default (YAML lists vs the config's tuples compare as sequences)."""
+    if isinstance(value, (list, tuple)) and isinstance(default, (list, tuple)):
+        return list(value) == list(default)
+    return value == default
 
 
 @dataclass(frozen=True)
@@ -92,6 +116,9 @@ class RunSpec:
     def _hash(self, left_out: dict[str, set], version: int) -> str:
         recipe = {k: ({kk: vv for kk, vv in v.items() if kk not in left_out[k]} if k in left_out and isinstance(v, dict)
                       else v) for k, v in self.recipe.items()}
+        neutral = _neutral_env_options(self.recipe) if version > 1 else {}
+        if neutral and isinstance(recipe.get("env"), dict):
+            recipe["env"] = {k: v for k, v in recipe["env"].items() if not (k in neutral and _same(v, neutral[k]))}
         data = {"recipe": recipe, "protocols": self.protocols, "episodes": self.episodes}
         if version > 1:
             data["hash_version"] = version
