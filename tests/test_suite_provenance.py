@@ -67,3 +67,37 @@ def test_an_installed_package_reports_its_version_only(tmp_path, monkeypatch):
     monkeypatch.setattr(provenance, "_PROCESS", None)
     monkeypatch.setattr(provenance, "_root", lambda: tmp_path)
     assert set(provenance.code_version()) == {"ddp"}
+
+
+def test_the_first_look_imports_the_whole_package(tmp_path, monkeypatch):
+    """Every module is imported when the process first looks at its code, so that an evaluation an hour later
+    does not import a newer module beside the older ones (a changed interface failed two suite runs)."""
+    import sys
+
+    pkg = tmp_path / "lazypkg"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("")
+    (pkg / "eager.py").write_text("")
+    (pkg / "sub" / "lazy.py").write_text("VERSION = 1\n")
+    (pkg / "needs_driver.py").write_text("import a_driver_that_is_not_installed\n")
+    (pkg / "__main__.py").write_text("raise SystemExit('the CLI ran')\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    for name in [m for m in sys.modules if m.startswith("lazypkg")]:
+        monkeypatch.delitem(sys.modules, name)
+    assert provenance.load_package("lazypkg") == ["lazypkg.needs_driver"]
+    assert "lazypkg.sub.lazy" in sys.modules and "lazypkg.__main__" not in sys.modules
+    (pkg / "sub" / "lazy.py").write_text("VERSION = 2\n")  # the checkout moves on
+    import importlib
+
+    assert importlib.import_module("lazypkg.sub.lazy").VERSION == 1  # the process keeps what it loaded
+    for name in [m for m in sys.modules if m.startswith("lazypkg")]:
+        monkeypatch.delitem(sys.modules, name)
+
+    calls = []
+    monkeypatch.setattr(provenance, "_PROCESS", None)
+    monkeypatch.setattr(provenance, "_root", lambda: tmp_path)
+    monkeypatch.setattr(provenance, "load_package", lambda package="ddp": calls.append(package) or [])
+    provenance.process_code()
+    provenance.process_code()
+    assert calls == ["ddp"]  # on the first look only

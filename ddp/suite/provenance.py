@@ -3,9 +3,10 @@
 A Python process runs the code it imported. A suite's worker imports the package when it starts and may run
 for hours while the checkout moves on (commits, edits), so the checkout at the end of a run is not what ran.
 :func:`code_version` therefore reports the checkout as this process found it on its first call
-(:func:`process_code`, made when a pool worker starts, else at the start of the first run), and says
-when the package's source has changed since: a module imported after that point (many are imported
-lazily) may then be the newer code, and the result mixes the two.
+(:func:`process_code`, made when a pool worker starts, else at the start of the first run), and that call
+imports every module of the package (many are otherwise imported lazily, on first use: an evaluation an
+hour into a run would import the newer code beside the older, and a changed interface between them
+failed both evaluations of a suite). It still says when the package's source has changed since.
 
 In a git checkout the state is the commit and whether the package's own source (``ddp/``, untracked files
 included) differs from it; results files, READMEs and notes written while a suite runs do not count.
@@ -18,7 +19,7 @@ import hashlib
 import subprocess
 from pathlib import Path
 
-__all__ = ["checkout", "code_version", "process_code"]
+__all__ = ["checkout", "code_version", "load_package", "process_code"]
 
 _PROCESS: dict | None = None  # this process's first look at its code (see process_code)
 
@@ -63,13 +64,34 @@ def _root() -> Path:
     return Path(ddp.__file__).resolve().parent.parent
 
 
+def load_package(package: str = "ddp") -> list[str]:
+    """Import every module of ``package`` now, so that this process runs one version of it whatever the
+    checkout becomes; returns the modules that could not be imported (an optional dependency missing: they
+    fail where they are used, as before)."""
+    import importlib
+    import pkgutil
+
+    root = importlib.import_module(package)
+    failed = []
+    for module in pkgutil.walk_packages(root.__path__, f"{package}."):
+        if module.name.rsplit(".", 1)[-1] == "__main__":  # the CLI entry point runs when imported
+            continue
+        try:
+            importlib.import_module(module.name)
+        except Exception:  # noqa: BLE001 - e.g. a real-robot backend without its driver installed
+            failed.append(module.name)
+    return failed
+
+
 def process_code() -> dict:
-    """The package version and checkout this process started with (computed on the first call)."""
+    """The package version and checkout this process started with (computed on the first call, which also
+    imports the whole package: :func:`load_package`)."""
     global _PROCESS
     if _PROCESS is None:
         import ddp
 
         _PROCESS = {"ddp": ddp.__version__, **checkout(_root())}
+        load_package()
     return dict(_PROCESS)
 
 
