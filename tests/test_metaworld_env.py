@@ -63,6 +63,17 @@ def test_config_validation_names_field_and_value():
         MetaWorldEnvConfig(crop_min=(0, 0, 1), crop_max=(1, 1, 0))
     with pytest.raises(ValueError, match="occlusion_mode"):
         MetaWorldEnvConfig(occlusion_chunk=1, occlusion_mode="blur")
+    with pytest.raises(ValueError, match=r"task_indices needs 2 entries \[start, stop\); got \[0\]"):
+        MetaWorldEnvConfig(task_indices=(0,))
+    with pytest.raises(ValueError, match=r"camera_pos needs 3 entries; got \[1, 2\]"):
+        MetaWorldEnvConfig(camera_pos=(1, 2))
+    # a move the episode never reaches: the "OOD" protocol would measure an undisturbed episode
+    with pytest.raises(ValueError, match=r"displacement_chunk 30 starts at step 240 .*past the episode's last step 199"):
+        MetaWorldEnvConfig(task="assembly", displacement=True, displacement_chunk=30)
+    with pytest.raises(ValueError, match=r"snap-back chunk 6 starts at step 48 .*last step 39 \(max_episode_steps 40\)"):
+        MetaWorldEnvConfig(task="sweep", displacement=True, oracle_tracking=True, max_episode_steps=40)
+    MetaWorldEnvConfig(task="sweep", displacement=True, max_episode_steps=40)  # no snap-back without the oracle
+    MetaWorldEnvConfig(task="assembly", displacement=True, displacement_chunk=24)  # step 192: reached
 
 
 def test_config_round_trips_through_a_recipe_dict():

@@ -185,6 +185,10 @@ class MetaWorldEnvConfig(ObservationOptions):
             raise ValueError(
                 f"task must be one of the MetaWorld v3 tasks; got {self.task!r}{suggest(self.task, METAWORLD_V3_TASKS)}"
             )
+        if len(self.task_indices) != 2:
+            raise ValueError(f"task_indices needs 2 entries [start, stop); got {list(self.task_indices)}")
+        if self.camera_pos is not None and len(self.camera_pos) != 3:
+            raise ValueError(f"camera_pos needs 3 entries; got {list(self.camera_pos)}")
         start, stop = self.task_indices
         if not 0 <= start < stop <= NUM_TRAIN_TASKS:
             raise ValueError(f"task_indices must satisfy 0 <= start < stop <= 50; got {tuple(self.task_indices)}")
@@ -207,6 +211,19 @@ class MetaWorldEnvConfig(ObservationOptions):
             raise ValueError(f"displacement_chunk must be >= 0; got {self.displacement_chunk}")
         if self.displacement_delta is not None and len(self.displacement_delta) != 3:
             raise ValueError(f"displacement_delta needs 3 entries; got {self.displacement_delta}")
+        plan = self.displacement_schedule()
+        if plan is not None and self.max_episode_steps is not None:
+            # a move (or the oracle's snap-back) the episode never reaches would leave an "OOD" protocol
+            # measuring an undisturbed episode
+            last = self.max_episode_steps - 1
+            steps = [("displacement_chunk", plan.chunk, plan.step(self.chunk_len))]
+            if self.oracle_tracking and plan.snap_back_chunk is not None:
+                steps.append(("the oracle's snap-back chunk", plan.snap_back_chunk, plan.snap_back_step(self.chunk_len)))
+            for what, chunk, step in steps:
+                if step > last:
+                    raise ValueError(f"{what} {chunk} starts at step {step} ({self.chunk_len} actions per chunk), "
+                                     f"past the episode's last step {last} (max_episode_steps "
+                                     f"{self.max_episode_steps}): the episode would never be disturbed as asked")
 
     def held_out_initial_states(self, block: int = 0) -> dict:
         """Overrides under which no reset draws an initial state that this config's resets draw: a later
