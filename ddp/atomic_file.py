@@ -2,17 +2,21 @@
 folder fsynced so that the rename is durable too.
 
 A reader (or a crash) sees the old file or the new one, never half of one. Used for checkpoints and
-detector calibrations.
+detector calibrations. :func:`atomic_directory` does the same for a directory (episode data, demo caches,
+zarr stores): written in full beside the target, then moved onto it, the earlier one moved aside first and
+deleted only once the new one is in place (put back if the move fails).
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
+import uuid
 from pathlib import Path
 from typing import Callable, IO
 
-__all__ = ["atomic_write"]
+__all__ = ["atomic_directory", "atomic_write"]
 
 
 def atomic_write(path: str | os.PathLike, write: Callable[[IO], None], *, binary: bool = True) -> Path:
@@ -64,3 +68,31 @@ def _fsync_dir(folder: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+def atomic_directory(path: str | os.PathLike, write: Callable[[Path], None]) -> Path:
+    """``write(tmp)`` fills a new directory beside ``path``, which then replaces ``path``: a reader sees the
+    earlier directory or the new one, whole; an error (or a crash) before the move leaves the earlier one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    try:
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; a directory gets what mkdir would give
+        write(tmp)
+        old = None
+        if path.exists():  # moved aside, not deleted, until the new directory is in place
+            old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
+            os.rename(path, old)
+        try:
+            os.rename(tmp, path)
+        except BaseException:
+            if old is not None:
+                os.rename(old, path)  # the earlier directory back in place
+            raise
+        _fsync_dir(path.parent)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path

@@ -109,3 +109,25 @@ def test_sequence_dataset_batches_match_items():
     assert b.batch_size == (3, 5)
     assert torch.equal(b[1]["action"], ds[4]["action"])
     assert ds[0]["action"][:, 0].tolist() == [0, 0, 1, 2, 3]
+
+
+def test_saving_over_episodes_is_atomic(tmp_path, monkeypatch):
+    """An interrupted save leaves the earlier episodes whole, not a mix of old and new files."""
+    import pytest
+
+    first = _episodes()
+    d = first.save(tmp_path / "eps")
+
+    def interrupted(self, *args, **kwargs):
+        raise KeyboardInterrupt  # the save killed half-way through writing the steps
+
+    monkeypatch.setattr(TensorDict, "memmap", interrupted)
+    second = Episodes(first.steps[:6], torch.tensor([6]))
+    with pytest.raises(KeyboardInterrupt):
+        second.save(d)
+    monkeypatch.undo()
+    loaded = Episodes.load(d)
+    assert torch.equal(loaded.episode_ends, first.episode_ends) and (loaded.steps == first.steps).all()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eps"]  # no temporary left beside it
+    second.save(d)
+    assert torch.equal(Episodes.load(d).episode_ends, torch.tensor([6]))

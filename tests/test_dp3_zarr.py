@@ -176,3 +176,26 @@ def test_colour_clouds_train_end_to_end(dp3_dir, tiny_recipe, tmp_path):
     tiny_recipe["task"]["point_dim"] = 3
     with pytest.raises(RecipeError, match="encoder: encoder.use_color reads xyz.rgb points: set task.point_dim to 6"):
         build(tiny_recipe)
+
+
+def test_overwriting_keeps_the_earlier_store_until_the_new_one_is_in_place(demos, tmp_path, monkeypatch):
+    import os
+
+    path = export_dp3_zarr(demos, tmp_path / "store.zarr")
+    before = zarr.open(str(path), mode="r")["data/action"][:]
+    real_rename = os.rename
+
+    def failing_rename(src, dst):  # the new store's move into place fails (a crash, a full disk)
+        if ".tmp" in str(src) and str(dst) == str(path):
+            raise OSError("no space left on device")
+        return real_rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", failing_rename)
+    with pytest.raises(OSError, match="no space left"):
+        export_dp3_zarr(Episodes(demos.steps[:10], torch.tensor([4, 10])), path, overwrite=True)
+    monkeypatch.setattr(os, "rename", real_rename)
+    assert np.array_equal(zarr.open(str(path), mode="r")["data/action"][:], before)  # the earlier store, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["store.zarr"]  # nothing left beside it
+    export_dp3_zarr(Episodes(demos.steps[:10], torch.tensor([4, 10])), path, overwrite=True)
+    assert zarr.open(str(path), mode="r")["data/action"].shape[0] == 10
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["store.zarr"]

@@ -33,14 +33,12 @@ import hashlib
 import json
 import logging
 import os
-import shutil
-import tempfile
 import time
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, ClassVar
 
+from ddp.atomic_file import atomic_directory
 from ddp.config import to_dict
 from ddp.data.demos import generate_demos
 from ddp.data.episodes import Episodes
@@ -285,24 +283,13 @@ class CachedExpertDemos:
         """Write the cache atomically: a temporary sibling directory renamed onto ``path``."""
         path = self.path
         self._check_path_is_ours()
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
-        try:
-            os.chmod(tmp, 0o755)  # mkdtemp makes it private
+
+        def write(tmp: Path) -> None:
             demos.save(tmp)
             meta = {**self.generation_params(), "episodes": demos.num_episodes, "stats": stats, "created": time.time()}
             (tmp / GENERATION_FILE).write_text(json.dumps(meta, indent=1))
-            old = None
-            if path.exists():
-                old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
-                os.rename(path, old)
-            os.rename(tmp, path)
-            if old is not None:
-                shutil.rmtree(old, ignore_errors=True)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return path
+
+        return atomic_directory(path, write)
 
     def prepare(self, progress: bool = True, regenerate: bool | None = None) -> dict:
         """Make sure the cache holds the demos; generate and save them if needed.

@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 from tensordict import TensorDict
 
+from ddp.atomic_file import atomic_directory
 from ddp.errors import DDPError
 
 FORMAT = "ddp-episodes"
@@ -57,15 +58,17 @@ class Episodes:
         return Episodes.from_list([self.episode(int(i)) for i in indices])
 
     def save(self, path: str | Path) -> Path:
-        """Write a memory-mappable directory (TensorDict memmap + meta.json)."""
-        path = Path(path)
-        path.mkdir(parents=True, exist_ok=True)
-        self.steps.memmap(path / "steps", num_threads=0)
-        torch.save(self.episode_ends, path / "episode_ends.pt")
-        (path / "meta.json").write_text(
-            json.dumps({"format": FORMAT, "version": VERSION, "num_episodes": self.num_episodes})
-        )
-        return path
+        """Write a memory-mappable directory (TensorDict memmap + meta.json), atomically: written beside
+        ``path`` and then moved onto it, so an interrupted save leaves what was there (``atomic_directory``)."""
+
+        def write(tmp: Path) -> None:
+            self.steps.memmap(tmp / "steps", num_threads=0)
+            torch.save(self.episode_ends, tmp / "episode_ends.pt")
+            (tmp / "meta.json").write_text(
+                json.dumps({"format": FORMAT, "version": VERSION, "num_episodes": self.num_episodes})
+            )
+
+        return atomic_directory(path, write)
 
     @classmethod
     def load(cls, path: str | Path) -> "Episodes":

@@ -19,8 +19,6 @@ Needs the ``zarr`` package (2.x or 3.x; both read and write the v2 format).
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -29,6 +27,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from ddp.atomic_file import atomic_directory
 from ddp.data.episodes import Episodes
 from ddp.data.sources.episodes_dir import check_task
 from ddp.errors import DDPError
@@ -212,11 +211,10 @@ def export_dp3_zarr(
     if path.exists() and not overwrite:
         raise DDPError(f"{path}: exists (pass overwrite=True to replace it)")
     keys = {**DEFAULT_KEYS, **(keys or {})}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
     compressor = numcodecs.Blosc(cname="zstd", clevel=3, shuffle=numcodecs.Blosc.SHUFFLE)
     v3 = int(zarr.__version__.split(".")[0]) >= 3
-    try:
+
+    def write(tmp: Path) -> None:
         root = zarr.open_group(str(tmp), mode="w", **({"zarr_format": 2} if v3 else {}))
         arrays = {keys.get(k, f"data/{k}"): episodes.steps[k].detach().cpu().numpy() for k in episodes.steps.keys()}
         arrays[EPISODE_ENDS] = episodes.episode_ends.cpu().numpy().astype(np.int64)
@@ -231,13 +229,8 @@ def export_dp3_zarr(
                 z = group.create_dataset(array_name, shape=data.shape, chunks=chunks, dtype=data.dtype,
                                          compressor=compressor)  # fmt: skip
             z[...] = data
-        os.chmod(tmp, 0o755)  # mkdtemp makes it private
-        if path.exists():
-            shutil.rmtree(path)
-        os.rename(tmp, path)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+
+    atomic_directory(path, write)  # an earlier store stays whole until the new one is in place
     return path
 
 
