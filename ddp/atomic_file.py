@@ -4,7 +4,9 @@ folder fsynced so that the rename is durable too.
 A reader (or a crash) sees the old file or the new one, never half of one. Used for checkpoints and
 detector calibrations. :func:`atomic_directory` does the same for a directory (episode data, demo caches,
 zarr stores): written in full beside the target, then moved onto it, the earlier one moved aside first and
-deleted only once the new one is in place (put back if the move fails).
+deleted only once the new one is in place (put back if the move fails). Between those two renames (a few
+microseconds) the path does not exist: a reader that finds nothing there should wait for the writer's
+lock, where there is one, and look again.
 """
 
 from __future__ import annotations
@@ -72,8 +74,9 @@ def _fsync_dir(folder: Path) -> None:
 
 def atomic_directory(path: str | os.PathLike, write: Callable[[Path], None]) -> Path:
     """``write(tmp)`` fills a new directory beside ``path``, which then replaces ``path``: a reader sees the
-    earlier directory or the new one, whole; an error (or a crash) before the move leaves the earlier one."""
-    path = Path(path)
+    earlier directory or the new one, whole; an error (or a crash) before the move leaves the earlier one.
+    A symbolic link is followed: the directory it points to is the one replaced."""
+    path = Path(path).resolve()
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
     try:

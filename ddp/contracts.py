@@ -49,7 +49,11 @@ class Denoiser(Protocol):
 
 
 class Scheduler(Protocol):
-    """A diffusion / flow process: the training loss and the sampling loop."""
+    """A diffusion / flow process: the training loss and the sampling loop.
+
+    ``generator`` is None, one ``torch.Generator``, or a list of them, one per row of the batch (the
+    controller's per-episode streams, :mod:`ddp.rng`): draw noise through :func:`ddp.schedulers.base.randn`
+    (or ``rand`` / ``randint``), which takes all three forms."""
 
     def loss(self, model_fn, x0, *, generator=None) -> torch.Tensor: ...
 

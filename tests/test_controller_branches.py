@@ -240,6 +240,37 @@ def test_gripper_closure_settled_below_fires_on_a_grasp_wider_than_width_below()
         GripperClosureConfig(settled_below=0.09, settle_tol=float("nan"))
 
 
+def test_gripper_closure_empty_below_lets_a_missed_grasp_go_on_and_bad_settings_are_refused():
+    from ddp.recovery.target_specific import TargetSpecificConfig, TargetSpecificRecovery
+    from ddp.triggers.gripper_closure import GripperClosureConfig, GripperClosureTrigger
+
+    paper = GripperClosureTrigger(GripperClosureConfig(settled_below=0.09))
+    missed = GripperClosureTrigger(GripperClosureConfig(settled_below=0.09, empty_below=0.035))
+    on_air, on_puck = _fingers([0.031, 0.030]), _fingers([0.0452, 0.0450])  # MetaWorld: closed on nothing / a puck
+    assert paper.fired(on_air, 8, 8) and not missed.fired(on_air, 8, 8)  # the missed grasp does not end the subtask
+    assert paper.fired(on_puck, 8, 8) and missed.fired(on_puck, 8, 8)
+    assert missed.fired(_fingers([0.0562, 0.0560]), 8, 8)  # the mug, settled
+    for bad, match in ((dict(width_below=4.5), r"width_below must be in \(0, 0.5\] metres; got 4.5"),
+                       (dict(width_below=float("nan")), "width_below must be in"),
+                       (dict(empty_below=0.05), r"empty_below must be < width_below \(0.045\)"),
+                       (dict(left=(3, 5)), r"left must be an agent_pos slice \[start, start \+ 3\).*got \[3, 5\]"),
+                       (dict(right=(6,)), "right must be an agent_pos slice"),
+                       (dict(min_chunks=-1), "min_chunks must be >= 0")):
+        with pytest.raises(ValueError, match=match):
+            GripperClosureConfig(**bad)
+    with pytest.raises(ValueError, match=r"agent_pos has 4 dims; the finger slices .* need 9"):
+        paper.fired({"agent_pos": torch.zeros(2, 4)}, 8, 8)
+    # recovery: objects it also moves back must exist
+    with pytest.raises(ValueError, match=r"also_recovers must list object indices >= 0; got \[-1\]"):
+        TargetSpecificConfig(also_recovers=[-1])
+    rec = TargetSpecificRecovery(TargetSpecificConfig(also_recovers=[5]))
+    with pytest.raises(ValueError, match=r"also_recovers: object 5 is not one of the 2 object\(s\)"):
+        rec.recover(torch.ones(2, 3), torch.tensor([True, False]), 0)
+    shift, recovered = TargetSpecificRecovery(TargetSpecificConfig(also_recovers=[1])).recover(
+        torch.ones(2, 3), torch.tensor([True, False]), 0)
+    assert recovered.tolist() == [True, True] and shift.tolist() == [-1.0] * 3
+
+
 # --------------------------------------------------------------------------- 3. oracle snap-back
 @pytest.mark.parametrize("trigger", [{"name": "chunk_index", "chunk": 3}, {"name": "timer", "chunks": 1}, None])
 def test_oracle_snapback_recovers_at_its_fixed_chunk_whatever_the_triggers_say(tiny_recipe, trigger):

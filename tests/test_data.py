@@ -131,3 +131,29 @@ def test_saving_over_episodes_is_atomic(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["eps"]  # no temporary left beside it
     second.save(d)
     assert torch.equal(Episodes.load(d).episode_ends, torch.tensor([6]))
+
+
+def test_saving_episodes_replaces_only_an_episode_directory_and_follows_links(tmp_path):
+    import os
+
+    import pytest
+
+    from ddp.errors import DDPError
+
+    eps = _episodes()
+    shared = tmp_path / "data"
+    shared.mkdir()
+    (shared / "README.md").write_text("other work")
+    with pytest.raises(DDPError, match="data: exists and is not an episode directory"):
+        eps.save(shared)  # it would have replaced everything in it
+    assert (shared / "README.md").read_text() == "other work"
+    real = eps.save(tmp_path / "real")
+    os.symlink(real, tmp_path / "link")
+    smaller = Episodes(eps.steps[:6], torch.tensor([6]))
+    smaller.save(tmp_path / "link")
+    assert (tmp_path / "link").is_symlink()  # the link stays and reads the new episodes
+    assert torch.equal(Episodes.load(tmp_path / "link").episode_ends, torch.tensor([6]))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "link", "real"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert Episodes.load(eps.save(empty)).num_episodes == eps.num_episodes

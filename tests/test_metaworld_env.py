@@ -68,12 +68,16 @@ def test_config_validation_names_field_and_value():
     with pytest.raises(ValueError, match=r"camera_pos needs 3 entries; got \[1, 2\]"):
         MetaWorldEnvConfig(camera_pos=(1, 2))
     # a move the episode never reaches: the "OOD" protocol would measure an undisturbed episode
-    with pytest.raises(ValueError, match=r"displacement_chunk 30 starts at step 240 .*past the episode's last step 199"):
+    with pytest.raises(ValueError, match=r"displacement_chunk 30 starts at step 240 .*no chunk acts after the move "
+                                         r"is observed \(it needs max_episode_steps > 248\)"):
         MetaWorldEnvConfig(task="assembly", displacement=True, displacement_chunk=30)
-    with pytest.raises(ValueError, match=r"snap-back chunk 6 starts at step 48 .*last step 39 \(max_episode_steps 40\)"):
+    with pytest.raises(ValueError, match=r"displacement_chunk 24 starts at step 192"):  # seen at 200: the end
+        MetaWorldEnvConfig(task="assembly", displacement=True, displacement_chunk=24)
+    MetaWorldEnvConfig(task="assembly", displacement=True, displacement_chunk=23)  # seen at 192, one chunk acts
+    with pytest.raises(ValueError, match=r"snap-back chunk 6 starts at step 48, past the episode's last step 39 "
+                                         r"\(max_episode_steps 40\)"):
         MetaWorldEnvConfig(task="sweep", displacement=True, oracle_tracking=True, max_episode_steps=40)
     MetaWorldEnvConfig(task="sweep", displacement=True, max_episode_steps=40)  # no snap-back without the oracle
-    MetaWorldEnvConfig(task="assembly", displacement=True, displacement_chunk=24)  # step 192: reached
 
 
 def test_config_round_trips_through_a_recipe_dict():

@@ -81,11 +81,13 @@ def test_the_first_look_imports_the_whole_package(tmp_path, monkeypatch):
     (pkg / "eager.py").write_text("")
     (pkg / "sub" / "lazy.py").write_text("VERSION = 1\n")
     (pkg / "needs_driver.py").write_text("import a_driver_that_is_not_installed\n")
+    (pkg / "broken").mkdir()
+    (pkg / "broken" / "__init__.py").write_text("raise RuntimeError('a subpackage that fails to import')\n")
     (pkg / "__main__.py").write_text("raise SystemExit('the CLI ran')\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     for name in [m for m in sys.modules if m.startswith("lazypkg")]:
         monkeypatch.delitem(sys.modules, name)
-    assert provenance.load_package("lazypkg") == ["lazypkg.needs_driver"]
+    assert sorted(provenance.load_package("lazypkg")) == ["lazypkg.broken", "lazypkg.needs_driver"]
     assert "lazypkg.sub.lazy" in sys.modules and "lazypkg.__main__" not in sys.modules
     (pkg / "sub" / "lazy.py").write_text("VERSION = 2\n")  # the checkout moves on
     import importlib

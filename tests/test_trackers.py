@@ -373,6 +373,12 @@ def test_pointcloud_tracker_config_errors():
                        "rgb": np.zeros((4, 4, 3), np.uint8)}], [0], segmentation=False)
     with pytest.raises(ValueError, match="expected_positions"):
         tracker(td)
+    with pytest.raises(ValueError, match=r"num_objects is 1 but isolation.expected_positions lists 2 position\(s\)"):
+        PointCloudTrackerConfig(num_objects=1, isolation=IsolationConfig(expected_positions=[[0, 0, 0], [1, 0, 0]]))
+    with pytest.raises(ValueError, match=r"num_objects is 3 but meshes lists 2"):
+        FoundationPoseTrackerConfig(meshes=["a.obj", "b.obj"], num_objects=3)
+    with pytest.raises(ValueError, match=r"2 object\(s\) but isolation.expected_positions lists 1"):
+        FoundationPoseTrackerConfig(num_objects=2, isolation=IsolationConfig(expected_positions=[[0, 0, 0]]))
 
 
 def test_trackers_are_registered_and_build_from_a_recipe_section():

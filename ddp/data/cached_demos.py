@@ -321,13 +321,18 @@ class CachedExpertDemos:
         info = self.prepare(progress=True)
         try:
             demos = Episodes.load(self.path)
-        except Exception as err:  # noqa: BLE001 - a damaged cache is regenerated once
-            if not info["generated"]:
+        except Exception:  # noqa: BLE001 - another process replacing the cache: wait for its lock, read again
+            info = self.prepare(progress=True)
+            demos = None
+        if demos is None:
+            try:
+                demos = Episodes.load(self.path)
+            except Exception as err:  # noqa: BLE001 - a damaged cache is regenerated once
+                if info["generated"]:
+                    raise
                 log.warning("%s: unreadable demo cache (%s); regenerating", self.path, err)
                 self.prepare(progress=True, regenerate=True)
                 demos = Episodes.load(self.path)
-            else:
-                raise
         if demos.num_episodes > self.cfg.episodes:  # a larger cache: its first episodes are ours
             demos = Episodes(demos.steps[: int(demos.episode_ends[self.cfg.episodes - 1])],
                              demos.episode_ends[: self.cfg.episodes].clone())  # fmt: skip

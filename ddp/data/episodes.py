@@ -59,7 +59,12 @@ class Episodes:
 
     def save(self, path: str | Path) -> Path:
         """Write a memory-mappable directory (TensorDict memmap + meta.json), atomically: written beside
-        ``path`` and then moved onto it, so an interrupted save leaves what was there (``atomic_directory``)."""
+        ``path`` and then moved onto it, so an interrupted save leaves what was there (``atomic_directory``).
+        ``path`` must be new, empty or an episode directory (it is replaced whole)."""
+        target = Path(path)
+        if target.is_dir() and any(target.iterdir()) and not (target / "meta.json").is_file():
+            raise DDPError(f"{target}: exists and is not an episode directory (no meta.json); saving would replace "
+                           f"everything in it: choose a new or empty directory")
 
         def write(tmp: Path) -> None:
             self.steps.memmap(tmp / "steps", num_threads=0)

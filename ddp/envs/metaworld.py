@@ -216,14 +216,15 @@ class MetaWorldEnvConfig(ObservationOptions):
             # a move (or the oracle's snap-back) the episode never reaches would leave an "OOD" protocol
             # measuring an undisturbed episode
             last = self.max_episode_steps - 1
-            steps = [("displacement_chunk", plan.chunk, plan.step(self.chunk_len))]
-            if self.oracle_tracking and plan.snap_back_chunk is not None:
-                steps.append(("the oracle's snap-back chunk", plan.snap_back_chunk, plan.snap_back_step(self.chunk_len)))
-            for what, chunk, step in steps:
-                if step > last:
-                    raise ValueError(f"{what} {chunk} starts at step {step} ({self.chunk_len} actions per chunk), "
-                                     f"past the episode's last step {last} (max_episode_steps "
-                                     f"{self.max_episode_steps}): the episode would never be disturbed as asked")
+            move = plan.step(self.chunk_len)
+            if move + self.chunk_len > last:  # the first observation showing it ends the episode: no chunk reacts
+                raise ValueError(f"displacement_chunk {plan.chunk} starts at step {move} ({self.chunk_len} actions per "
+                                 f"chunk): with max_episode_steps {self.max_episode_steps} no chunk acts after the "
+                                 f"move is observed (it needs max_episode_steps > {move + self.chunk_len})")
+            snap = plan.snap_back_step(self.chunk_len) if self.oracle_tracking else None
+            if snap is not None and snap > last:
+                raise ValueError(f"the oracle's snap-back chunk {plan.snap_back_chunk} starts at step {snap}, past the "
+                                 f"episode's last step {last} (max_episode_steps {self.max_episode_steps})")
 
     def held_out_initial_states(self, block: int = 0) -> dict:
         """Overrides under which no reset draws an initial state that this config's resets draw: a later

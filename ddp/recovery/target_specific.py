@@ -13,6 +13,11 @@ from ddp.registry import register
 class TargetSpecificConfig:
     also_recovers: list[int] = field(default_factory=list)  # objects moved back with the target (held by it)
 
+    def __post_init__(self):
+        bad = [k for k in self.also_recovers if isinstance(k, bool) or not isinstance(k, int) or k < 0]
+        if bad:
+            raise ValueError(f"also_recovers must list object indices >= 0; got {list(self.also_recovers)}")
+
 
 @register("recovery", "target_specific", config=TargetSpecificConfig)
 class TargetSpecificRecovery:
@@ -31,6 +36,9 @@ class TargetSpecificRecovery:
             return torch.zeros(3, dtype=offsets.dtype), recovered
         recovered[target] = True
         for k in self.config.also_recovers:
+            if k >= displaced.shape[0]:
+                raise ValueError(f"recovery.also_recovers: object {k} is not one of the {displaced.shape[0]} "
+                                 f"object(s) the tracker follows (0..{displaced.shape[0] - 1})")
             recovered[k] = True
         return -offsets[target], recovered
 

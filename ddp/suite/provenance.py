@@ -73,14 +73,15 @@ def load_package(package: str = "ddp") -> list[str]:
 
     root = importlib.import_module(package)
     failed = []
-    for module in pkgutil.walk_packages(root.__path__, f"{package}."):
+    # onerror: a subpackage whose __init__ fails is listed, not raised (walk_packages imports it to look inside)
+    for module in pkgutil.walk_packages(root.__path__, f"{package}.", onerror=failed.append):
         if module.name.rsplit(".", 1)[-1] == "__main__":  # the CLI entry point runs when imported
             continue
         try:
             importlib.import_module(module.name)
         except Exception:  # noqa: BLE001 - e.g. a real-robot backend without its driver installed
             failed.append(module.name)
-    return failed
+    return list(dict.fromkeys(failed))  # a failing subpackage is reported by walk_packages and by its import
 
 
 def process_code() -> dict:

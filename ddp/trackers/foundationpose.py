@@ -111,6 +111,13 @@ class FoundationPoseTrackerConfig:
             raise ValueError("register_iterations and track_iterations must be >= 1")
         if self.track_tolerance is not None and not (np.isfinite(self.track_tolerance) and self.track_tolerance > 0):
             raise ValueError(f"track_tolerance must be a finite number > 0 (metres) or null; got {self.track_tolerance}")
+        k = self.num_objects if self.num_objects is not None else len(self.meshes)
+        if self.meshes and k > len(self.meshes):
+            raise ValueError(f"num_objects is {k} but meshes lists {len(self.meshes)}: one mesh per object")
+        anchors = self.isolation.expected_positions
+        if anchors is not None and k and len(anchors) != k:
+            raise ValueError(f"{k} object(s) but isolation.expected_positions lists {len(anchors)} position(s): "
+                             f"one per object")
 
 
 def _fail(message: str) -> PluginError:
@@ -127,8 +134,8 @@ class FoundationPoseEstimator:
     @staticmethod
     def _rgb(rgb, depth):
         if rgb is None:
-            raise KeyError("foundationpose tracker needs the tracking camera's colour image (\"tracking\", \"rgb\") "
-                           "[H, W, 3] uint8; enable rgb on the env's tracking camera")
+            raise ValueError("foundationpose tracker needs the tracking camera's colour image (\"tracking\", \"rgb\") "
+                             "[H, W, 3] uint8; enable rgb on the env's tracking camera")
         return np.ascontiguousarray(rgb[..., :3], dtype=np.uint8)
 
     def register(self, K, rgb, depth, mask, iterations):

@@ -100,6 +100,10 @@ class PointCloudTrackerConfig:
     def __post_init__(self):
         if self.num_objects is not None and self.num_objects < 1:
             raise ValueError(f"num_objects must be >= 1; got {self.num_objects}")
+        anchors = self.isolation.expected_positions
+        if self.num_objects is not None and anchors is not None and len(anchors) != self.num_objects:
+            raise ValueError(f"num_objects is {self.num_objects} but isolation.expected_positions lists "
+                             f"{len(anchors)} position(s): one per object")
         if len(self.ee_dims) != 3:
             raise ValueError(f"ee_dims must name 3 agent_pos dimensions; got {self.ee_dims}")
         if self.pixel_stride < 1 or self.min_points < 3 or self.max_points < self.min_points:

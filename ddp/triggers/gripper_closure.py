@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from ddp.registry import register
 
+MAX_WIDTH = 0.5  # metres: a larger finger distance reads as centimetres or millimetres
+
 
 @dataclass
 class GripperClosureConfig:
@@ -18,10 +20,24 @@ class GripperClosureConfig:
     # between the last two frames). None: only width_below counts.
     settled_below: float | None = None
     settle_tol: float = 0.002
+    # fingers closer than this hold nothing (closed on air: MetaWorld's 0.030 m against 0.045-0.056 m round its
+    # objects): no fire, the subtask goes on. None: any closure counts (the paper's trigger)
+    empty_below: float | None = None
 
     def __post_init__(self):
-        if not self.width_below > 0:
-            raise ValueError(f"width_below must be > 0; got {self.width_below}")
+        for name in ("width_below", "settled_below", "empty_below"):
+            value = getattr(self, name)
+            if value is not None and not 0 < value <= MAX_WIDTH:
+                raise ValueError(f"{name} must be in (0, {MAX_WIDTH}] metres; got {value}")
+        if self.empty_below is not None and not self.empty_below < self.width_below:
+            raise ValueError(f"empty_below must be < width_below ({self.width_below}); got {self.empty_below}")
+        for name in ("left", "right"):
+            span = getattr(self, name)
+            if len(span) != 2 or not 0 <= span[0] < span[1] or span[1] - span[0] != 3:
+                raise ValueError(f"{name} must be an agent_pos slice [start, start + 3) of one finger's xyz; "
+                                 f"got {list(span)}")
+        if self.min_chunks < 0:
+            raise ValueError(f"min_chunks must be >= 0; got {self.min_chunks}")
         if self.settled_below is not None and not self.settled_below > self.width_below:
             raise ValueError(f"settled_below must be > width_below ({self.width_below}); got {self.settled_below}")
         if not self.settle_tol > 0:
@@ -31,13 +47,17 @@ class GripperClosureConfig:
 @register("trigger", "gripper_closure", config=GripperClosureConfig)
 class GripperClosureTrigger:
     """Fires when the distance between the finger positions in ``agent_pos`` drops below ``width_below``, or
-    (with ``settled_below``) when they have stopped under ``settled_below``: closed on a wider object."""
+    (with ``settled_below``) when they have stopped under ``settled_below``: closed on a wider object; with
+    ``empty_below``, not when they closed further than that (on nothing)."""
 
     def __init__(self, config: GripperClosureConfig):
         self.config = config
 
     def width(self, agent_pos) -> float:
         c = self.config
+        if agent_pos.shape[-1] < max(c.left[1], c.right[1]):
+            raise ValueError(f"gripper_closure: agent_pos has {agent_pos.shape[-1]} dims; the finger slices left "
+                             f"{list(c.left)} / right {list(c.right)} need {max(c.left[1], c.right[1])}")
         return float((agent_pos[..., c.left[0] : c.left[1]] - agent_pos[..., c.right[0] : c.right[1]]).norm(dim=-1))
 
     def fired(self, obs, chunk_index: int, subtask_chunks: int) -> bool:
@@ -45,6 +65,8 @@ class GripperClosureTrigger:
             return False
         c, agent_pos = self.config, obs["agent_pos"]
         width = self.width(agent_pos[-1])
+        if c.empty_below is not None and width < c.empty_below:
+            return False  # closed on nothing: the grasp missed, the subtask is not done
         if width < c.width_below:
             return True
         if c.settled_below is None or agent_pos.dim() < 2 or agent_pos.shape[0] < 2 or width >= c.settled_below:
