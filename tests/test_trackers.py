@@ -530,6 +530,41 @@ def test_foundationpose_track_check_expects_the_surface_where_registration_saw_i
     assert tracker.reregistered == 0 and vis.all() and np.allclose(off, 0.0, atol=1e-6)
 
 
+class RegistersOnTheMask(SimulatorPoses):
+    """FoundationPose registering on whichever object the mask holds (most of its pixels), with a mesh origin
+    off the object's centre: 25 cm in +y, right onto box b's centre for box a."""
+
+    SHIFT = [0.05, 0.25, 0.0]
+
+    def register(self, K, rgb, depth, mask, iterations):
+        f = self.scene.last_frame
+        labels = f["segmentation"][mask]
+        k = int(np.bincount(labels[labels >= 0]).argmax())
+        self.calls.append(("register", self.k, k))
+        shift = np.eye(4)
+        shift[:3, 3] = self.SHIFT
+        return geo.invert_transform(f["cam_to_world"]) @ self.scene.object_pose(k) @ shift
+
+
+def test_foundationpose_geometric_masks_are_looked_for_where_the_surface_was_seen(scene):
+    """Geometric registration masks (hardware) are found near where each object's points were seen, not near
+    its reported point (the mesh origin): box a's origin lies on box b, and looking there gave a box b's mask
+    (a false 26 cm displacement of a)."""
+    calls = []
+    tracker = FoundationPoseTracker(
+        FoundationPoseTrackerConfig(num_objects=2, mode="register", masks="geometry", min_offset=0.0,
+                                    isolation=IsolationConfig(expected_positions=[A0.tolist(), B0.tolist()])),
+        estimator_factory=lambda k: RegistersOnTheMask(scene, k, calls))
+    off, vis = _fp_observe(tracker, scene, 0)
+    assert vis.all() and calls == [("register", 0, 0), ("register", 1, 1)]
+    off, vis = _fp_observe(tracker, scene, 1)  # nothing moved
+    assert calls[-2:] == [("register", 0, 0), ("register", 1, 1)] and np.allclose(off, 0.0, atol=1e-5)
+    scene.place(0, A0 + [0.06, -0.04, 0.0])
+    off, vis = _fp_observe(tracker, scene, 2)
+    np.testing.assert_allclose(off[0], [0.06, -0.04, 0.0], atol=1e-5)
+    np.testing.assert_allclose(off[1], 0.0, atol=1e-5)
+
+
 def test_foundationpose_default_offsets_match_the_box_displacement(scene):
     tracker = FoundationPoseTracker(FoundationPoseTrackerConfig(num_objects=2),
                                     estimator_factory=lambda k: SimulatorPoses(scene, k, []))

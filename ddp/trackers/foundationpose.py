@@ -228,6 +228,14 @@ class _ObjectPose(CarriedState):
     # frame): where a tracked pose's visible surface is expected (a large or off-centre object's surface
     # centroid lies far from its origin)
     surface: np.ndarray | None = None
+    # the centroid of the points registration saw minus the reported point (base frame): where the object's
+    # pixels are looked for (its reported point, the mesh origin by default, may lie off the object or nearer
+    # a neighbour's points than its own)
+    seen: np.ndarray | None = None
+
+    def look_at(self) -> np.ndarray:
+        """Where to look for the object's points: its last position plus the surface offset registration saw."""
+        return self.last if self.seen is None else self.last + self.seen
 
 
 @register("tracker", "foundationpose", config=FoundationPoseTrackerConfig)
@@ -257,9 +265,13 @@ class FoundationPoseTracker(ObjectTracker):
             self.estimators[(b, k)] = self.factory(k)
         return self.estimators[(b, k)]
 
-    def _masks(self, depth, K, T, seg, ee, anchors) -> list:
-        """Per-object pixel masks [H, W] bool (None where the object was not found)."""
-        return [None if f is None else f[0] for f in self._found(depth, K, T, seg, ee, anchors)]
+    def _saw(self, state, pose, found, T) -> None:
+        """After a registration on ``found`` (mask, centroid): where its surface and points lie from the pose."""
+        if pose is None or found is None or not np.all(np.isfinite(pose)):
+            return
+        world = T @ pose
+        state.surface = found[1] - world[:3, 3]
+        state.seen = found[1] - self._position(world)
 
     def _found(self, depth, K, T, seg, ee, anchors) -> list:
         """Per object ``(mask [H, W] bool, centroid of its points [3])``, None where it was not found."""
@@ -307,32 +319,34 @@ class FoundationPoseTracker(ObjectTracker):
                 continue
             pose = self._estimator(b, k).register(K, rgb, depth, f[0], self.config.register_iterations)
             world = T @ pose
-            states.append(_ObjectPose(ref=world, last=self._position(world), surface=f[1] - world[:3, 3]))
+            position = self._position(world)
+            states.append(_ObjectPose(ref=world, last=position, surface=f[1] - world[:3, 3], seen=f[1] - position))
         return states
 
     def _track_env(self, b, states, depth, K, T, rgb, seg, ee):
         c = self.config
         n = self.num_objects
         offsets, visible, carried = np.zeros((n, 3)), np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
-        masks = None
+        found = None
         if c.mode == "register":
-            masks = self._masks(depth, K, T, seg, ee, [s.last if s is not None else None for s in states])
+            found = self._found(depth, K, T, seg, ee, [s.look_at() if s is not None else None for s in states])
         for k, s in enumerate(states):
             if s is None:
                 continue
             near = s.near_gripper(ee, c.carried_radius)
             est = self._estimator(b, k)
-            if masks is not None:
-                pose = est.register(K, rgb, depth, masks[k], c.register_iterations) if masks[k] is not None else None
+            if found is not None:
+                f = found[k]
+                pose = est.register(K, rgb, depth, f[0], c.register_iterations) if f is not None else None
+                self._saw(s, pose, f, T)
             else:
                 pose = est.track(K, rgb, depth, c.track_iterations)
                 if c.track_tolerance is not None and not self._agrees(pose, k, s, depth, K, T, seg, ee):
                     # lost: registered again from the object's pixels near where it was last seen
-                    anchors = [s_.last if s_ is not None else None for s_ in states]
+                    anchors = [s_.look_at() if s_ is not None else None for s_ in states]
                     f = self._found(depth, K, T, seg, ee, anchors)[k]
                     pose = est.register(K, rgb, depth, f[0], c.register_iterations) if f is not None else None
-                    if pose is not None and np.all(np.isfinite(pose)):
-                        s.surface = f[1] - (T @ pose)[:3, 3]
+                    self._saw(s, pose, f, T)
                     self.reregistered += 1
             disp = position = None
             if pose is not None and np.all(np.isfinite(pose)):
