@@ -9,7 +9,9 @@ controller). From these :func:`detection_metrics` counts, per protocol:
 * ``first_visible``: the first disturbed chunk of an episode (the first chunk
   at which a detector could see the disturbance);
 * detections: the first ID->OOD switch at or after it, its ``delay`` in
-  chunks, and ``missed`` episodes (no switch until the end);
+  chunks; ``alarm_before_visible`` episodes (no such switch, but OOD already on
+  at the first visible chunk: an earlier alarm, which the controller acts on)
+  and ``missed`` ones (neither: ID at the first visible chunk and after);
 * false alarms: ID->OOD switches before the first visible chunk of a
   disturbed episode, or anywhere in an undisturbed one (per episode and per
   undisturbed chunk);
@@ -32,7 +34,8 @@ from __future__ import annotations
 import math
 import numpy as np
 
-__all__ = ["auroc", "first_above", "first_visible", "detection_metrics", "detect", "SCORE_VARIANTS", "format_detect"]
+__all__ = ["auroc", "first_above", "first_visible", "alarmed_before_visible", "detection_metrics", "detect",
+           "SCORE_VARIANTS", "format_detect"]
 
 
 def auroc(negatives, positives) -> float:
@@ -60,6 +63,17 @@ def first_visible(ep: dict) -> int | None:
     """The first chunk whose observation showed the disturbance (its ``disturbed`` flags), or None."""
     flags = ep.get("disturbed") or []
     return next((c for c, f in enumerate(flags) if f), None)
+
+
+def alarmed_before_visible(ep: dict) -> bool:
+    """A disturbed episode with no ID->OOD switch at or after its first visible chunk whose mode was already
+    OOD there: an alarm raised before the disturbance showed was still on (not a miss; a false alarm too).
+    ``ep`` is an evaluated episode, or a suite result's trace (``first_visible``, ``mode`` as a 0/1 string)."""
+    visible = ep["first_visible"] if "first_visible" in ep else first_visible(ep)
+    mode = [float(m) for m in ep.get("mode") or []]
+    if visible is None or visible >= len(mode) or mode[visible] < 0.5:
+        return False
+    return not any(a >= visible for a in _alarms(mode))
 
 
 def _alarms(mode: list[float]) -> list[int]:
@@ -120,7 +134,8 @@ def detection_metrics(episodes: list[dict], reference: list[list[float]] | None 
         "disturbed_episodes": len(disturbed),
         "clean_episodes": len(clean),
         "detected": len(delays),
-        "missed": len(disturbed) - len(delays),
+        "alarm_before_visible": sum(alarmed_before_visible(ep) for ep in disturbed),
+        "missed": len(disturbed) - len(delays) - sum(alarmed_before_visible(ep) for ep in disturbed),
         "detected_within_1": sum(d <= 1 for d in delays),
         "median_delay": float(np.median(delays)) if delays else None,
         "mean_delay": float(np.mean(delays)) if delays else None,

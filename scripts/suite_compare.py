@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ddp.detection import alarmed_before_visible
 from ddp.suite.store import read_complete
 
 
@@ -30,7 +31,12 @@ def _cell(run: dict | None, protocol: str) -> str:
     cell = f"{p['successes']}/{p['episodes']}"
     det = p.get("detection")
     if det and det.get("disturbed_episodes"):
-        cell += f" ({det['detected_within_1']} on time, {det['missed']} missed)"
+        # from the stored traces: episodes whose earlier alarm was still on when the move showed are not misses
+        # (results stored before detection_metrics split them counted them in "missed")
+        early = sum(alarmed_before_visible(t) for t in p.get("traces") or [])
+        missed = det["missed"] - early if "alarm_before_visible" not in det else det["missed"]
+        cell += f" ({det['detected_within_1']} on time, {missed} missed"
+        cell += f", {early} alarmed before)" if early else ")"
     elif det and det.get("clean_episodes"):
         cell += f" ({det['episodes_with_false_alarm']} FA)"
     return cell

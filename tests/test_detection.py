@@ -12,7 +12,7 @@ import torch
 from conftest import displaced_exp
 from ddp import results_json
 from ddp.calibration_file import calibration_path, load_calibration, model_digest, save_calibration
-from ddp.detection import auroc, detection_metrics, first_above
+from ddp.detection import alarmed_before_visible, auroc, detection_metrics, first_above
 from ddp.detectors.discrepancy import DiscrepancyConfig, DiscrepancyDetector
 from ddp.detectors.scores import ScoreSpec, conformal_threshold, episode_statistic, fit_calibration, residual_score
 
@@ -382,8 +382,14 @@ def test_detection_metrics_count_delays_misses_and_false_alarms():
     ]
     m = detection_metrics(eps, reference=[[math.nan, 0.1, 0.1, 0.1, 0.1], [math.nan, 0.2, 0.2, 0.2, 0.2]])
     assert m["disturbed_episodes"] == 4 and m["clean_episodes"] == 1
-    # seed 0: delay 1; seed 1: delay 0; seed 2: missed; seed 4: OOD since chunk 1 (a false alarm), never switched
-    assert m["detected"] == 2 and m["missed"] == 2 and m["detected_within_1"] == 2 and m["median_delay"] == 0.5
+    # seed 0: delay 1; seed 1: delay 0; seed 2: missed; seed 4: OOD since chunk 1 (a false alarm) and still on when
+    # the move shows: the controller acts on it, not a miss
+    assert m["detected"] == 2 and m["missed"] == 1 and m["alarm_before_visible"] == 1
+    assert m["detected_within_1"] == 2 and m["median_delay"] == 0.5
+    # an early alarm that ended before the move showed, and nothing after: a miss
+    ended = {"seed": 5, "mode": [0, 1, 0, 0, 0], "disturbed": [0, 0, 0, 1, 1], "score": [math.nan] * 5}
+    assert not alarmed_before_visible(ended) and detection_metrics([ended])["missed"] == 1
+    assert alarmed_before_visible({"first_visible": 3, "mode": "01111"})  # a suite result's trace
     assert [e["delay"] for e in m["per_episode"]] == [1, 0, None, None, None]
     assert m["episodes_with_false_alarm"] == 2  # seed 3 (clean) and seed 4 (before its disturbance)
     assert m["false_alarms_per_id_chunk"] == pytest.approx(2 / (5 + 2 + 2 + 2 + 3))

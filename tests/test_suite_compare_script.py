@@ -37,3 +37,19 @@ def test_rows_and_averages_count_only_runs_made_again(tmp_path, capsys):
     assert "| push | 4/20 (10 on time, 10 missed) | 12/20 (15 on time, 5 missed) |" in out
     assert "| sweep | 2/20 (5 on time, 15 missed) | - |" in out
     assert "| tasks on both sides | 20.0 % | 60.0 % |" in out
+
+
+def test_an_alarm_still_on_when_the_move_shows_is_not_a_miss(tmp_path, capsys):
+    """Results stored before detection_metrics split them counted such episodes as missed: the script reads the
+    stored traces."""
+    before, after = tmp_path / "before", tmp_path / "after"
+    for folder, h in ((before, "h1"), (after, "h2")):
+        _store(folder, "push", h, 10, 17)  # 3 "missed" as stored
+        run = json.loads((folder / "push__ddp__seed0.json").read_text())
+        run["protocols"]["ood_ddp"]["traces"] = (
+            [{"success": True, "first_visible": 3, "mode": "00011111", "score": []}] * 17
+            + [{"success": False, "first_visible": 3, "mode": "01111111", "score": []}] * 2  # on since chunk 1
+            + [{"success": False, "first_visible": 3, "mode": "00000000", "score": []}])  # never flagged
+        (folder / "push__ddp__seed0.json").write_text(json.dumps(run))
+    assert _script().main([str(before), str(after), "--protocols", "ood_ddp"]) == 0
+    assert "| push | 10/20 (17 on time, 1 missed, 2 alarmed before) |" in capsys.readouterr().out
