@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ddp import results_json
+from ddp.percent import percent
 
 
 def protocol_result(episodes: list[dict], *, seconds: float, thresholds: dict, videos: list[str] | None = None,
@@ -70,7 +71,7 @@ def markdown_table(reports: dict[str, dict]) -> str:
             elif r["success_rate"] is None:  # a real robot's episodes: success is a person's call
                 cells.append(f"not judged ({r['episodes']} episodes)")
             else:
-                cells.append(f"{100 * r['success_rate']:.0f} ({r['successes']}/{r['episodes']})")
+                cells.append(f"{percent(r['success_rate'])} ({r['successes']}/{r['episodes']})")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

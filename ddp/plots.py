@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ddp.percent import percent
+
 
 def _pyplot():
     import matplotlib
@@ -25,7 +27,7 @@ def plot_success(report: dict, path: Path) -> Path | None:
     fig, ax = plt.subplots(figsize=(1.2 + 1.1 * len(names), 3.2))
     bars = ax.bar(names, rates, color="#4c72b0")
     for bar, r in zip(bars, rates):
-        ax.text(bar.get_x() + bar.get_width() / 2, r + 1, f"{r:.0f}", ha="center", va="bottom", fontsize=8)
+        ax.text(bar.get_x() + bar.get_width() / 2, r + 1, percent(r / 100), ha="center", va="bottom", fontsize=8)
     ax.set_ylim(0, 110)
     ax.set_ylabel("success rate (%)")
     ax.set_title(f"{report['recipe']}: {report['episodes']} episodes per protocol")

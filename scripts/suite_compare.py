@@ -16,6 +16,7 @@ import argparse
 from pathlib import Path
 
 from ddp.detection import alarmed_before_visible
+from ddp.percent import percent
 from ddp.suite.store import read_complete
 
 
@@ -68,7 +69,7 @@ def main(argv=None) -> int:
 
     def rate(results) -> str:
         n = sum(r["episodes"] for r in results)
-        return f"{100 * sum(r['successes'] for r in results) / n:.1f} %" if n else "-"
+        return f"{percent(sum(r['successes'] for r in results) / n, 1)} %" if n else "-"
 
     print("| tasks on both sides | " + " | ".join(
         f"{rate([b for b, _ in both[p]])} | {rate([a for _, a in both[p]])}" for p in protocols) + " |")

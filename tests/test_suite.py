@@ -460,7 +460,7 @@ def test_aggregation_math(tmp_path):
     assert "ddp|ood|c" not in table["cells"]
     paths = write_suite_report(results, tmp_path, "t")
     md = (tmp_path / "table.md").read_text()
-    assert "| ddp | id | 95 ± 7 (n=20) | 60 ± 14 (n=20) | 30 [11, 60] (n=10) | 77 ± 4 | 30 |" in md
+    assert "| ddp | id | 95 ± 7 (n=20) | 60 ± 14 (n=20) | 30 [11, 60] (n=10) | 78 ± 4 | 30 |" in md
     assert {p.name for p in paths} >= {"table.md", "table.json", "table.csv"}
     assert (tmp_path / "table.csv").read_text().splitlines()[0].startswith("method,protocol,a_mean,a_std")
 
@@ -480,7 +480,7 @@ def test_an_average_over_tasks_with_different_seeds_or_missing_tasks_says_so(tmp
     assert dp3["missing_tasks"] == ["b"] and dp3["std"] == pytest.approx(math.sqrt(0.02))
     write_suite_report(results, tmp_path, "t")
     md = (tmp_path / "table.md").read_text()
-    assert "| ddp | id | 70 ± 44 (n=30) | 55 ± 7 (n=20) | 62 † |" in md
+    assert "| ddp | id | 70 ± 44 (n=30) | 55 ± 7 (n=20) | 63 † |" in md
     assert "| dp3 | id | 50 ± 14 (n=20) | - | 50 ± 14 (1/2 tasks) |" in md
 
 

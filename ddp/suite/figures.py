@@ -27,10 +27,11 @@ def _grid(n: int, cols: int = 5) -> tuple[int, int]:
     return math.ceil(n / cols), cols
 
 
-def _errors(cell: dict | None) -> tuple[float, float, float]:
-    """(mean, lower, upper) error-bar lengths in percent; NaN mean for a missing cell."""
+def _errors(cell: dict | None) -> tuple[float, float | None, float | None]:
+    """(mean, lower, upper) error-bar lengths in percent; NaN mean for a missing cell, None lengths for a cell
+    with neither a std nor an interval (an average over one seed, or over tasks with different seeds)."""
     if cell is None:
-        return float("nan"), 0.0, 0.0
+        return float("nan"), None, None
     mean = 100 * cell["mean"]
     if "std" in cell:
         return mean, 100 * cell["std"], 100 * cell["std"]
@@ -38,7 +39,18 @@ def _errors(cell: dict | None) -> tuple[float, float, float]:
         # clipped at 0: at a rate of 0 or 1 the interval's end can round to a hair inside the mean
         lo, hi = cell["wilson95"]
         return mean, max(0.0, mean - 100 * lo), max(0.0, 100 * hi - mean)
-    return mean, 0.0, 0.0
+    return mean, None, None
+
+
+def _coverage_mark(table: dict, rows, column: str) -> str:
+    """" (k/n tasks)" for an average panel whose cells cover only k of its benchmark's n tasks, as the tables say."""
+    from ddp.suite.report import _coverage  # (the report module imports this one)
+
+    for m, p in rows:
+        cell = table["cells"].get(f"{m}|{p}|{column}")
+        if cell and cell.get("missing_tasks"):
+            return f" ({_coverage(cell)} tasks)"
+    return ""
 
 
 def _finish(plt, fig, handles, labels, title: str, path: Path) -> Path:
@@ -70,11 +82,12 @@ def plot_table(table: dict, columns: list[str], path: Path, title: str, referenc
         for i, (m, p) in enumerate(rows):
             mean, lo, hi = _errors(table["cells"].get(f"{m}|{p}|{column}"))
             if not math.isnan(mean):
-                ax.bar(i, mean, 0.8, yerr=[[lo], [hi]], capsize=1.5, color=colours[i], error_kw={"lw": 0.8})
+                bars = {} if lo is None else {"yerr": [[lo], [hi]], "capsize": 1.5, "error_kw": {"lw": 0.8}}
+                ax.bar(i, mean, 0.8, color=colours[i], **bars)
             ref = reference.get(f"{m}|{p}|{column}")
             if ref is not None:
                 ax.plot([i - 0.4, i + 0.4], [100 * ref] * 2, color="black", lw=1.6)
-        ax.set_title(column.replace("avg:", "average, "), fontsize=9)
+        ax.set_title(column.replace("avg:", "average, ") + _coverage_mark(table, rows, column), fontsize=9)
         ax.set_xticks(xs, [])
         ax.set_ylim(0, 105)
         ax.grid(axis="y", lw=0.3, alpha=0.5)

@@ -23,6 +23,7 @@ import numpy as np
 
 from ddp import results_json
 from ddp.atomic_file import atomic_write
+from ddp.percent import percent
 from ddp.suite.figures import plot_detection, plot_table
 from ddp.suite.store import evaluation_seconds
 
@@ -139,12 +140,12 @@ def aggregate(results: list[dict], tasks_of_suite: dict[str, str] | None = None)
 def format_cell(cell: dict | None) -> str:
     if cell is None:
         return "-"
-    text = f"{100 * cell['mean']:.0f}"
+    text = percent(cell["mean"])
     if "std" in cell:
-        text += f" ± {100 * cell['std']:.0f}"
+        text += f" ± {percent(cell['std'])}"
     elif "wilson95" in cell:
         lo, hi = cell["wilson95"]
-        text += f" [{100 * lo:.0f}, {100 * hi:.0f}]"
+        text += f" [{percent(lo)}, {percent(hi)}]"
     if "episodes" in cell:
         text += f" (n={cell['episodes']})"
     if cell.get("uneven_seeds"):

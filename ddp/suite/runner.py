@@ -38,6 +38,7 @@ import traceback
 from pathlib import Path
 
 from ddp.errors import DDPError
+from ddp.percent import percent
 from ddp.preemption import Preempted, interruption, signals_deferred, stop_signals
 from ddp.suite.budget import (Deadline, SuiteTimeLimit, estimate_seconds, fmt_elapsed, fmt_minutes, trains_on,
                               stored_results, total_expected)
@@ -267,7 +268,7 @@ def run_suite(suite: SuiteSpec, *, workers: int = 1, threads: int | None = None,
         failed: dict[str, str] = {}
 
         def finished(run: RunSpec, result: dict) -> None:
-            rates = ", ".join(f"{p} {100 * v['success_rate']:.0f} %" for p, v in result["protocols"].items())
+            rates = ", ".join(f"{p} {percent(v['success_rate'])} %" for p, v in result["protocols"].items())
             took = fmt_elapsed(result["wall_seconds"])
             if run.reevaluate:
                 result = merge_reevaluation(store, run, result)

@@ -1,0 +1,29 @@
+"""Reports write percentages with halves rounded up, the same in every table, plot and log line."""
+
+import pytest
+
+from ddp.percent import percent
+from ddp.suite.figures import _coverage_mark, _errors
+from ddp.suite.report import format_cell
+
+
+@pytest.mark.parametrize("fraction,text", [(33 / 40, "83"), (39 / 40, "98"), (29 / 40, "73"), (5 / 40, "13"),
+                                           (25 / 40, "63"), (17 / 20, "85"), (0.0, "0"), (1.0, "100"), (2 / 3, "67")])
+def test_halves_round_up(fraction, text):
+    assert percent(fraction) == text
+
+
+def test_one_decimal_and_a_table_cell():
+    assert percent(0.74255, 1) == "74.3" and percent(0.7425, 1) == "74.3" and percent(0.6, 1) == "60.0"
+    # two seeds of 20 whose rates differ by an odd count: a half (push ood_ddp 15/20 and 10/20: 62.5 %)
+    assert format_cell({"mean": 0.625, "std": 0.1767767, "episodes": 40}) == "63 ± 18 (n=40)"
+    assert format_cell({"mean": 0.85, "wilson95": [0.6396, 0.9476], "episodes": 20}) == "85 [64, 95] (n=20)"
+
+
+def test_an_average_without_spread_draws_no_error_bar_and_says_which_tasks_it_covers():
+    one_seed_average = {"mean": 0.883, "tasks": ["a", "b"], "missing_tasks": ["c", "d", "e"]}
+    assert _errors(one_seed_average) == (pytest.approx(88.3), None, None)  # no zero-length bar with caps
+    assert _errors({"mean": 0.5, "std": 0.1})[1:] == (pytest.approx(10.0), pytest.approx(10.0))
+    table = {"cells": {"ddp|id|avg:mw": one_seed_average}}
+    assert _coverage_mark(table, [("ddp", "id")], "avg:mw") == " (2/5 tasks)"
+    assert _coverage_mark({"cells": {"ddp|id|avg:mw": {"mean": 1.0, "tasks": ["a"]}}}, [("ddp", "id")], "avg:mw") == ""
