@@ -687,3 +687,19 @@ def test_flowpolicy_overlay_trains_and_acts(tmp_path, monkeypatch):
                                   batch_size=[2]))
     assert out["action_chunk"].shape == (2, 4, A) and out["action"].shape == (2, 3, A)
     assert torch.isfinite(out["action"]).all()
+
+
+def test_a_suite_refuses_an_env_that_cannot_judge_success(suite_file, monkeypatch):
+    """A real robot's episodes carry no success verdict (None): the suite's tables would crash on them after the
+    training, so the run stops before it trains, with one line."""
+    from ddp.envs.synthetic_reach import SyntheticReachEnvConfig
+    from ddp.errors import DDPError
+    from ddp.experiment import build
+    from ddp.suite.runner import _check_judged
+
+    run = load_suite(suite_file).runs[0]
+    exp = build(run.recipe)
+    _check_judged(exp, run)  # a simulator judges
+    monkeypatch.setattr(SyntheticReachEnvConfig, "judges_success", lambda self: False, raising=False)
+    with pytest.raises(DDPError, match=r"cannot judge success .*evaluate it with `ddp eval`"):
+        _check_judged(exp, run)

@@ -82,6 +82,15 @@ def _summary(protocol: dict) -> dict:
     return out
 
 
+def _check_judged(exp, run: RunSpec) -> None:
+    """A suite aggregates success rates: an env whose episodes a person judges (a real robot) has none to give."""
+    env = exp.parts.get("env")
+    judges = getattr(env.config, "judges_success", None) if env is not None else None
+    if callable(judges) and not judges():
+        raise DDPError(f"{run.run_id}: env '{env.plugin.name}' cannot judge success (a real robot: a person does), "
+                       f"so a suite has no success rate to aggregate; evaluate it with `ddp eval` or `ddp run`")
+
+
 def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None,
                 deferred: list[int] | None = None) -> dict:
     """Train and evaluate one run; its console output goes to its log file. Returns its result. A stop signal
@@ -109,6 +118,7 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
         print(f"== {run.run_id} started (threads {torch.get_num_threads()})", flush=True)
         try:
             exp = build(run.recipe)
+            _check_judged(exp, run)
             trained = exp.train(resume=True, progress=False)
             exp.load_checkpoint(trained.checkpoint)
             report = exp.evaluate(list(run.protocols) if run.protocols else None, episodes=run.episodes,
