@@ -32,6 +32,17 @@ def _at_least_one(**flags) -> None:
             raise DDPError(f"--{name.replace('_', '-')}: must be >= 1; got {value}")
 
 
+def _names(value: str | None, flag: str) -> list[str] | None:
+    """A comma-separated flag's names; None when the flag is not given. Given but empty (``--protocols ""``, an
+    unset shell variable) is an error, not "all of them"."""
+    if value is None:
+        return None
+    names = [n.strip() for n in value.split(",") if n.strip()]
+    if not names:
+        raise DDPError(f"{flag}: empty; name at least one (leave the flag out for the default)")
+    return names
+
+
 def cmd_list(args) -> int:
     from ddp import registry
 
@@ -40,7 +51,7 @@ def cmd_list(args) -> int:
         entries = [p for p in registry.plugins(kind) if fnmatch.fnmatch(p.name, args.pattern)]
         print(f"{kind}: {registry.KINDS[kind][1]}")
         if not entries:
-            print("  (none registered yet)")
+            print("  (none registered yet)" if args.pattern == "*" else f"  (none matching {args.pattern!r})")
         for p in entries:
             print(f"  {p.name:<20} {p.summary}  [{p.module}]")
     return 0
@@ -116,13 +127,13 @@ def _eval(args) -> int:
 
     from ddp.experiment import build, experiment_from_checkpoint
 
+    protocols = _names(args.protocols, "--protocols")
     if args.recipe is None:  # the recipe stored in the checkpoint; its plugin modules only on --trust-plugins
         exp = experiment_from_checkpoint(args.checkpoint, ema=not args.raw_weights, trust_plugins=args.trust_plugins,
                                          overrides=args.overrides)
     else:
         exp = build(args.recipe, args.overrides)
         exp.load_checkpoint(args.checkpoint, ema=not args.raw_weights)
-    protocols = args.protocols.split(",") if args.protocols else None
     out_dir = Path(args.output_dir or exp.recipe.eval.output_dir.format(name=exp.recipe.name))
     report = exp.evaluate(protocols, episodes=args.episodes, output_dir=out_dir, num_envs=args.num_envs,
                           progress=not args.quiet, video=True if args.video else None,
@@ -164,8 +175,9 @@ def _detect(args) -> int:
     from ddp.errors import suggest
     from ddp.experiment import build, experiment_from_checkpoint
 
-    _at_least_one(episodes=args.episodes, calibration_episodes=args.calibration_episodes, samples=args.samples)
-    if not 0.0 < args.alpha < 1.0:
+    _at_least_one(episodes=args.episodes, calibration_episodes=args.calibration_episodes, samples=args.samples,
+                  num_envs=args.num_envs)
+    if args.alpha is not None and not 0.0 < args.alpha < 1.0:
         raise DDPError(f"--alpha: must be in (0, 1); got {args.alpha}")
     variants = SCORE_VARIANTS
     if args.scores:
@@ -193,9 +205,11 @@ def _detect(args) -> int:
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:  # a truncated or foreign .npz
             raise DDPError(f"--rollouts: {args.rollouts} is not a ddp detect rollouts file ({err})") from None
     try:
-        rep = detect(exp, episodes=args.episodes, calibration_episodes=args.calibration_episodes, alpha=args.alpha,
+        # the recipe detector's alpha (what its evaluations calibrate to), unless --alpha says otherwise
+        alpha = args.alpha if args.alpha is not None else getattr(exp.parts["controller.detector"].config, "alpha", 0.05)
+        rep = detect(exp, episodes=args.episodes, calibration_episodes=args.calibration_episodes, alpha=alpha,
                      seed=args.seed, disturbances=disturbances, env=_env_overrides(args.env), variants=variants,
-                     progress=not args.quiet, num_envs=args.num_envs or 1, parallel=args.parallel,
+                     progress=not args.quiet, num_envs=args.num_envs, parallel=args.parallel,
                      samples=args.samples, rollouts=rollouts, threshold_on=args.threshold_on)
     except ValueError as err:
         raise DDPError(str(err)) from None
@@ -223,13 +237,19 @@ def cmd_suite(args) -> int:
     from ddp.suite.superseded import superseded
 
     _at_least_one(workers=args.workers, threads=args.threads)
+    if args.ray is not None and args.workers is not None:
+        raise DDPError("--workers and --ray are alternatives: Ray places each run itself (leave out --workers)")
+    if args.gpus_per_run and args.ray is None:
+        raise DDPError(f"--gpus-per-run {args.gpus_per_run} needs --ray (the process pool does not place GPUs)")
+    if args.gpus_per_run < 0:
+        raise DDPError(f"--gpus-per-run: must be >= 0; got {args.gpus_per_run}")
     suite = load_suite(args.suite)
     try:
         seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else None
     except ValueError:
         raise DDPError(f"--seeds takes comma-separated integers, got {args.seeds!r}") from None
-    chosen = select(suite, tasks=args.tasks.split(",") if args.tasks else None,
-                    methods=args.methods.split(",") if args.methods else None, seeds=seeds)
+    chosen = select(suite, tasks=_names(args.tasks, "--tasks"), methods=_names(args.methods, "--methods"),
+                    seeds=seeds)
     reevaluate = None
     if args.reevaluate is not None:
         from ddp.protocols.base import check_protocols
@@ -287,7 +307,7 @@ def cmd_suite(args) -> int:
     if not args.report:
         ray = (args.ray or True) if args.ray is not None else False
         try:
-            run_suite(chosen, workers=args.workers, threads=args.threads, progress=not args.quiet, ray=ray,
+            run_suite(chosen, workers=args.workers or 1, threads=args.threads, progress=not args.quiet, ray=ray,
                       gpus_per_run=args.gpus_per_run, reevaluate=reevaluate, time_limit=time_limit)
         except (SuiteRunsFailed, SuiteTimeLimit) as err:  # the table still shows what finished
             failed = err
@@ -326,7 +346,12 @@ def _run(args) -> int:
     from ddp.evaluate import markdown_table
     from ddp.experiment import build
 
-    _at_least_one(jobs=args.jobs)
+    _at_least_one(jobs=args.jobs, episodes=args.episodes)
+    protocols = _names(args.protocols, "--protocols")
+    if protocols is not None:  # a misspelt name is found now, not after the training
+        from ddp.protocols.base import check_protocols
+
+        check_protocols(protocols, source="--protocols")
     if args.jobs > 1 and len(args.recipes) > 1:
         return _run_jobs(args)
     reports = {}
@@ -336,7 +361,6 @@ def _run(args) -> int:
         print(f"[{exp.recipe.name}] trained {res.steps} steps in {res.seconds:.0f} s; loss {res.loss:.4f}")
         exp.load_checkpoint(res.checkpoint)
         out_dir = Path(exp.recipe.eval.output_dir.format(name=exp.recipe.name))
-        protocols = args.protocols.split(",") if args.protocols else None
         report = exp.evaluate(protocols, episodes=args.episodes, output_dir=out_dir, progress=not args.quiet)
         reports[exp.recipe.name] = report
         print(f"[{exp.recipe.name}] results in {out_dir}")
@@ -471,14 +495,15 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=10, help="test episodes per condition (ID and each disturbance)")
     p.add_argument("--calibration-episodes", type=int, help="ID calibration episodes (default: eval.calibration_episodes; more are rolled out while too few succeed to set tau on)")
     p.add_argument("--threshold-on", choices=["successful", "all"], help="held-out ID episodes that set every statistic's tau (default: each statistic's own, successful unless it says all)")
-    p.add_argument("--alpha", type=float, default=0.05, help="target false-alarm rate per ID episode (default 0.05)")
+    p.add_argument("--alpha", type=float, help="target false-alarm rate per ID episode (default: the recipe detector's "
+                   "controller.detector.alpha, else 0.05)")
     p.add_argument("--disturbances", default="ood_base", help="comma-separated protocols that disturb the episodes, run with the base policy (default ood_base; e.g. ood_base,occlusion)")
     p.add_argument("--env", action="append", default=[], metavar="KEY=VALUE", help="env override for the disturbed episodes, e.g. --env displacement_chunk=4 --env 'displacement_delta=[0.1,0,0]' (repeatable)")
     p.add_argument("--scores", help="comma-separated statistics to compare (default: all of ddp.detection.SCORE_VARIANTS)")
     p.add_argument("--rollouts", help="score the rollouts a previous ddp detect saved (detect_rollouts.npz) instead of rolling out")
     p.add_argument("--samples", type=int, help="world-model samples per forecast (default: controller.forecast_samples); the spread statistics need > 1")
     p.add_argument("--seed", type=int, help="first test seed (default: eval.seed; calibration uses seed + 100000)")
-    p.add_argument("--num-envs", type=int, help="environments stepped together")
+    p.add_argument("--num-envs", type=int, default=1, help="environments stepped together (default 1)")
     p.add_argument("--parallel", action="store_true", help="one worker process per env")
     p.add_argument("--output-dir", help="default: <checkpoint dir>/detect")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -486,8 +511,8 @@ def make_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("suite", help="train and evaluate tasks x methods x seeds, resumable, aggregated", description="Expand a suite file (tasks x methods x seeds; see ddp/suite/spec.py) into runs, train and evaluate each one (skipping those whose result is already stored under results/suites/<suite>/), then write the paper's Table 1 layout (mean ± std over seeds) as table.md / .json / .csv / .png. Not to be confused with torch's DistributedDataParallel: DDP here is the Dream Diffusion Policy.")
     p.add_argument("suite", help="path to a suite YAML file (e.g. suites/metaworld_smoke.yaml)")
-    p.add_argument("--workers", type=int, default=1, help="runs at once, each in its own process (default 1: sequential in this process)")
-    p.add_argument("--threads", type=int, help="torch threads per run (default: all cores / workers)")
+    p.add_argument("--workers", type=int, help="runs at once, each in its own process (default 1: sequential in this process); not with --ray")
+    p.add_argument("--threads", type=int, help="torch threads per run (default: all cores / workers; 1 under --ray)")
     p.add_argument("--ray", nargs="?", const="", default=None, metavar="ADDRESS", help="run each run as a Ray task: on a local Ray started here (--ray) or a cluster (--ray ADDRESS, e.g. ray://head:10001 or auto); needs the ray extra")
     p.add_argument("--gpus-per-run", type=float, default=0.0, help="with --ray: GPUs each run asks for (default 0)")
     p.add_argument("--report", action="store_true", help="only aggregate the stored results (run nothing)")

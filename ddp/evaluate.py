@@ -50,9 +50,11 @@ def settle(exp, protocols, *, episodes, output_dir, num_envs, seed, video, paral
     cfg = exp.recipe.eval
     if exp.parts.get("env") is None:
         raise RecipeError("evaluation needs an env section", source=exp.source, key="env")
+    named = {"source": exp.source, "key": "eval.protocols"}  # where the names came from, for the errors below
     if protocols is None:
         protocols = list(cfg.protocols)
     else:
+        named = {"source": "--protocols"}
         protocols = list(protocols)
         check_protocols(protocols, source="--protocols")
         if not protocols:
@@ -60,7 +62,7 @@ def settle(exp, protocols, *, episodes, output_dir, num_envs, seed, video, paral
     for name in protocols:
         if get_protocol(name).imagine and not exp.model.has_world_model:
             raise RecipeError(f"protocol {name} acts on imagined latents: it needs a world model "
-                              "(world_model.enabled is false)", source=exp.source, key="eval.protocols")
+                              "(world_model.enabled is false)", **named)
     episodes = cfg.episodes if episodes is None else episodes
     num_envs = cfg.num_envs if num_envs is None else num_envs
     for flag, value in (("--episodes", episodes), ("--num-envs", num_envs)):

@@ -3,8 +3,12 @@ within one chunk of the first visible chunk, and the ID test episodes with a fal
 
     python3 scripts/detection_summary.py results/detection/*_cpu*.json
 """
-import json, sys
-files = sys.argv[1:]
+import argparse
+import json
+
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+parser.add_argument("files", nargs="+", help="ddp detect reports (detect.json, or a copy named after its run)")
+files = parser.parse_args().files
 def label(f):  # the file's name, or its folder's for ddp detect's own detect.json
     parts = f.split('/')
     return parts[-2] if parts[-1] == 'detect.json' and len(parts) > 1 else parts[-1].replace('.json', '')

@@ -5,10 +5,13 @@
 The README's copy is the markdown table that follows the line `<!-- suite-table: <suite> -->` (blank lines
 between them allowed).
 """
+import argparse
 import sys
 from pathlib import Path
 
-suite = sys.argv[1]
+parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+parser.add_argument("suite", help="the suite's name: its table is results/suites/<suite>/table.md")
+suite = parser.parse_args().suite
 root = Path(__file__).resolve().parents[1]
 source = root / "results" / "suites" / suite / "table.md"
 if not source.is_file():

@@ -156,7 +156,7 @@ CASES = [
     ("eval-unknown-protocol", lambda t, tr: ["eval", tr["recipe"], "--checkpoint", str(tr["ckpt"]), "--protocols", "id,odd",
                                              "--output-dir", str(t)], "--protocols: unknown protocol 'odd'"),
     ("eval-empty-protocols", lambda t, tr: ["eval", tr["recipe"], "--checkpoint", str(tr["ckpt"]), "--protocols", ",",
-                                            "--output-dir", str(t)], "a protocol name must be a non-empty string"),
+                                            "--output-dir", str(t)], "--protocols: empty; name at least one"),
     ("eval-missing-checkpoint", lambda t, tr: ["eval", tr["recipe"], "--checkpoint", str(t / "none.pt")], "checkpoint not found"),
     ("eval-other-architecture", lambda t, tr: ["eval", write(t / "r.yaml", tiny(policy={"denoiser": {"name": "unet1d", "down_dims": [8, 16],
                                                                                                       "n_groups": 4}})),

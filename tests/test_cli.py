@@ -100,3 +100,27 @@ def test_sigterm_ends_an_evaluation_through_its_clean_up(tmp_path, command):
     err = "".join(seen)
     assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
     assert "ddp: stopped by SIGTERM" in err and "Traceback" not in err
+
+
+def test_flags_are_checked_before_any_work(capsys, tmp_path, suite_file):
+    """From a read-only review of the CLI: an empty list flag is an error (it meant "all"), ddp run checks its
+    protocols and episode count before it trains, detect refuses --num-envs 0, the suite's executor flags are
+    alternatives, and list says when nothing matches a pattern."""
+    recipe = str(RECIPES / "quickstart.yaml")
+    cases = [
+        (["run", recipe, "--protocols", "id,ood_dpp", "--set", f"train.output_dir={tmp_path}/r"], "ood_dpp"),
+        (["run", recipe, "--episodes", "0", "--set", f"train.output_dir={tmp_path}/r"], "--episodes: must be >= 1"),
+        (["run", recipe, "--protocols", "", "--set", f"train.output_dir={tmp_path}/r"], "--protocols: empty"),
+        (["eval", recipe, "--checkpoint", str(tmp_path / "none.pt"), "--protocols", " , "], "--protocols: empty"),
+        (["suite", str(suite_file), "--tasks", ""], "--tasks: empty"),
+        (["suite", str(suite_file), "--workers", "2", "--ray"], "--workers and --ray are alternatives"),
+        (["suite", str(suite_file), "--gpus-per-run", "1"], "--gpus-per-run 1.0 needs --ray"),
+        (["detect", recipe, "--checkpoint", str(tmp_path / "none.pt"), "--num-envs", "0"], "--num-envs: must be >= 1"),
+    ]
+    for argv, message in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip()
+        assert message in err and err.count("\n") == 0, (argv, err)
+    assert not (tmp_path / "r").exists()  # nothing trained
+    assert main(["list", "scheduler", "--pattern", "zzz*"]) == 0
+    assert "(none matching 'zzz*')" in capsys.readouterr().out

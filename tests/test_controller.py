@@ -158,8 +158,12 @@ def test_imagination_protocols_need_a_world_model_and_imagine_whatever_the_recip
     assert imagined[0] == 0 and all(imagined[1:])  # real latents at the first chunk only
     tiny_recipe["world_model"]["enabled"] = False
     e = build(tiny_recipe)
-    with pytest.raises(RecipeError, match="protocol imagination_50 acts on imagined latents: it needs a world model"):
+    with pytest.raises(RecipeError, match="protocol imagination_50 acts on imagined latents: it needs a world model") as err:
         e.evaluate(["id", "imagination_50"], episodes=1, output_dir=tmp_path, progress=False)
+    assert str(err.value).startswith("--protocols:")  # the names came from the caller, not the recipe
+    e.recipe.eval.protocols = ["id", "imagination_50"]
+    with pytest.raises(RecipeError, match="eval.protocols: protocol imagination_50 acts on imagined latents"):
+        e.evaluate(episodes=1, output_dir=tmp_path, progress=False)
 
 
 def test_discrepancy_needs_a_world_model(tiny_recipe):
