@@ -204,3 +204,17 @@ def to_dict(cfg: Any) -> Any:
     if isinstance(cfg, dict):
         return {k: to_dict(v) for k, v in cfg.items()}
     return cfg
+
+
+def without_neutral_defaults(options: dict, config_cls: type) -> dict:
+    """``options`` (a config as a dict) without the keys written at the value ``config_cls`` declares neutral
+    (its ``cache_neutral_defaults``: options added after caches and results existed, whose default is what ran
+    before), so spelling out such a default changes no hash. Lists and tuples compare as sequences."""
+    neutral = getattr(config_cls, "cache_neutral_defaults", None) or {}
+
+    def same(value, default) -> bool:
+        if isinstance(value, (list, tuple)) and isinstance(default, (list, tuple)):
+            return list(value) == list(default)
+        return value == default
+
+    return {k: v for k, v in options.items() if not (k in neutral and same(v, neutral[k]))}

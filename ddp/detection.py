@@ -130,12 +130,13 @@ def detection_metrics(episodes: list[dict], reference: list[list[float]] | None 
     id_chunks = sum(len(ep.get("mode") or []) for ep in clean) + sum(
         e["first_visible"] for e in per_ep if e["first_visible"] is not None)
     fa_total = sum(e["false_alarms"] for e in per_ep)
+    early = sum(alarmed_before_visible(ep) for ep in disturbed)
     out = {
         "disturbed_episodes": len(disturbed),
         "clean_episodes": len(clean),
         "detected": len(delays),
-        "alarm_before_visible": sum(alarmed_before_visible(ep) for ep in disturbed),
-        "missed": len(disturbed) - len(delays) - sum(alarmed_before_visible(ep) for ep in disturbed),
+        "alarm_before_visible": early,
+        "missed": len(disturbed) - len(delays) - early,
         "detected_within_1": sum(d <= 1 for d in delays),
         "median_delay": float(np.median(delays)) if delays else None,
         "mean_delay": float(np.mean(delays)) if delays else None,

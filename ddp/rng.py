@@ -21,6 +21,7 @@ ACTIONS, FORECASTS = 0, 1
 
 _MASK = (1 << 64) - 1
 
+
 def _splitmix64(x: int) -> int:
     x = (x + 0x9E3779B97F4A7C15) & _MASK
     x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & _MASK

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Callable, ClassVar
 
 from ddp.atomic_file import atomic_directory
-from ddp.config import to_dict
+from ddp.config import to_dict, without_neutral_defaults
 from ddp.data.demos import generate_demos
 from ddp.data.episodes import Episodes
 from ddp.errors import DDPError, RecipeError
@@ -189,9 +189,7 @@ class CachedExpertDemos:
         env_cfg = to_dict(self.env_config)
         # env options added after caches were written leave the hash alone at their default value, so
         # the demos cached before them stay valid (an env config declares them in ``cache_neutral_defaults``)
-        for key, default in getattr(self.env_config, "cache_neutral_defaults", {}).items():
-            if key in env_cfg and env_cfg[key] == default:
-                del env_cfg[key]
+        env_cfg = without_neutral_defaults(env_cfg, type(self.env_config))
         return {
             "format": self.cache_format,
             "version": self.cache_version,

@@ -29,6 +29,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ddp.config import without_neutral_defaults
 from ddp.errors import RecipeError
 
 __all__ = ["RunSpec", "SuiteSpec", "load_suite"]
@@ -49,18 +50,17 @@ NOT_MEASURED = {"train": ("checkpoint_every_epochs", "log_every_steps", "logger"
 #: default (``env.pause_fingers: false``) without making its stored runs another run
 
 
-def _neutral_env_options(recipe: dict) -> dict:
-    """The env config's ``cache_neutral_defaults`` for the recipe's env plugin (none when it is unknown)."""
+def _env_config_class(recipe: dict) -> type | None:
+    """The config class of the recipe's env plugin (None when there is none or it is unknown)."""
     env = recipe.get("env")
     if not isinstance(env, dict) or not isinstance(env.get("name"), str):
-        return {}
+        return None
     from ddp import registry
 
     try:
-        config_cls = registry.get("env", env["name"]).config_cls
+        return registry.get("env", env["name"]).config_cls
     except Exception:  # noqa: BLE001 - an unknown env is reported where the recipe is built, not here
-        return {}
-    return dict(getattr(config_cls, "cache_neutral_defaults", None) or {})
+        return None
 
 KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "results_dir", "reference"}
 
@@ -68,13 +68,6 @@ KNOWN = {"name", "tasks", "methods", "seeds", "protocols", "episodes", "set", "r
 def _plain(label) -> bool:
     """Letters, digits, '-' and '_' only (a name that is safe in a path and in a comma-separated list)."""
     return isinstance(label, str) and bool(label) and label.replace("-", "").replace("_", "").isalnum()
-
-
-def _same(value, default) -> bool:
-    """A recipe value equals a neutral default (YAML lists vs the config's tuples compare as sequences)."""
-    if isinstance(value, (list, tuple)) and isinstance(default, (list, tuple)):
-        return list(value) == list(default)
-    return value == default
 
 
 @dataclass(frozen=True)
@@ -116,9 +109,9 @@ class RunSpec:
     def _hash(self, left_out: dict[str, set], version: int) -> str:
         recipe = {k: ({kk: vv for kk, vv in v.items() if kk not in left_out[k]} if k in left_out and isinstance(v, dict)
                       else v) for k, v in self.recipe.items()}
-        neutral = _neutral_env_options(self.recipe) if version > 1 else {}
-        if neutral and isinstance(recipe.get("env"), dict):
-            recipe["env"] = {k: v for k, v in recipe["env"].items() if not (k in neutral and _same(v, neutral[k]))}
+        config_cls = _env_config_class(self.recipe) if version > 1 else None
+        if config_cls is not None:
+            recipe["env"] = without_neutral_defaults(recipe["env"], config_cls)
         data = {"recipe": recipe, "protocols": self.protocols, "episodes": self.episodes}
         if version > 1:
             data["hash_version"] = version

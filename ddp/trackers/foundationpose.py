@@ -114,10 +114,8 @@ class FoundationPoseTrackerConfig:
         k = self.num_objects if self.num_objects is not None else len(self.meshes)
         if self.meshes and k > len(self.meshes):
             raise ValueError(f"num_objects is {k} but meshes lists {len(self.meshes)}: one mesh per object")
-        anchors = self.isolation.expected_positions
-        if anchors is not None and k and len(anchors) != k:
-            raise ValueError(f"{k} object(s) but isolation.expected_positions lists {len(anchors)} position(s): "
-                             f"one per object")
+        if k:
+            self.isolation.check_objects(k, f"{k} object(s)")
 
 
 def _fail(message: str) -> PluginError:

@@ -77,6 +77,13 @@ class IsolationConfig:
         if self.expected_positions is not None and any(len(p) != 3 for p in self.expected_positions):
             raise ValueError("isolation.expected_positions must be a list of [x, y, z] (one per object)")
 
+    def check_objects(self, k: int, counted: str) -> None:
+        """``expected_positions``, where set, names one position per each of the ``k`` tracked objects
+        (``counted``: where k comes from, for the message)."""
+        if self.expected_positions is not None and len(self.expected_positions) != k:
+            raise ValueError(f"{counted} but isolation.expected_positions lists {len(self.expected_positions)} "
+                             f"position(s): one per object")
+
 
 @dataclass
 class PointCloudTrackerConfig:
@@ -100,10 +107,8 @@ class PointCloudTrackerConfig:
     def __post_init__(self):
         if self.num_objects is not None and self.num_objects < 1:
             raise ValueError(f"num_objects must be >= 1; got {self.num_objects}")
-        anchors = self.isolation.expected_positions
-        if self.num_objects is not None and anchors is not None and len(anchors) != self.num_objects:
-            raise ValueError(f"num_objects is {self.num_objects} but isolation.expected_positions lists "
-                             f"{len(anchors)} position(s): one per object")
+        if self.num_objects is not None:
+            self.isolation.check_objects(self.num_objects, f"num_objects is {self.num_objects}")
         if len(self.ee_dims) != 3:
             raise ValueError(f"ee_dims must name 3 agent_pos dimensions; got {self.ee_dims}")
         if self.pixel_stride < 1 or self.min_points < 3 or self.max_points < self.min_points:
