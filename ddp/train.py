@@ -9,6 +9,7 @@ noise comes from a generator whose state is checkpointed.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
 import signal
 import time
@@ -116,6 +117,17 @@ def make_optimizer(model: torch.nn.Module, cfg) -> torch.optim.AdamW:
     """The recipe's AdamW (``train.lr``, ``betas``, ``weight_decay``), fused: one kernel for all parameters
     on CPU and CUDA instead of a Python loop over them (identical updates up to float rounding)."""
     return torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay, fused=True)
+
+
+def frames_digest(steps) -> str:
+    """A digest of the frames a target table encodes (``point_cloud`` and ``agent_pos`` of every step): a
+    resumed run reuses a checkpointed table only for the same frames."""
+    h = hashlib.sha256()
+    for key in ("point_cloud", "agent_pos"):
+        values = steps[key]
+        h.update(f"{key}{tuple(values.shape)}{values.dtype}".encode())
+        h.update(values.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
 
 
 @dataclass
@@ -241,11 +253,14 @@ class Trainer:
         # re-encoded every `refresh` steps (the step of the last refresh is checkpointed with the table)
         refresh = model.target_refresh_every if model.uses_target_table else 0
         table_step = None
+        table_frames = frames_digest(dataset.steps) if refresh else None  # which frames the table encodes
         if state is not None:
             self._restore(state, ckpt_path, optimizer=optimizer, lr_sched=lr_sched, ema=ema, noises=noises, total=total)
             step, epoch, batch_in_epoch = int(state["step"]), int(state["epoch"]), int(state["batch_in_epoch"])
             table = state.get("target_table") if refresh else None
-            if table is not None and table.shape[0] == dataset.steps.shape[0]:  # else other demos: refresh now
+            # reused only for the very frames it encoded (else other demos: refresh now)
+            if (table is not None and table.shape[0] == dataset.steps.shape[0]
+                    and state.get("target_table_frames") == table_frames):
                 model.target_table = table.to(self.device)
                 table_step = int(state["target_table_step"])
             if cfg.logger == "csv" and ranks.main:
@@ -325,6 +340,7 @@ class Trainer:
             if refresh and table_step is not None:  # an exact resume needs the targets of the last refresh
                 payload["target_table"] = model.target_table.detach().cpu()
                 payload["target_table_step"] = table_step
+                payload["target_table_frames"] = table_frames
             # no signal lands in the middle of the write: a second Ctrl-C is noted and acted on after it
             with signals_deferred() as received:
                 try:

@@ -62,8 +62,14 @@ def test_estimates_come_from_the_suites_stored_runs(suite_file):
     longer = dataclasses.replace(run, recipe={**run.recipe, "train": {**run.recipe["train"], "max_steps": 10}})
     assert estimate_seconds(longer, stored)[0] == pytest.approx(50.0 * 10 + 30.0)
     save_checkpoint(suite_file.parent / run.recipe["train"]["output_dir"] / "last.pt", {"step": 1})
-    cost, why = estimate_seconds(run, stored)
+    import ddp.checkpoint
+
+    loads, load = [], ddp.checkpoint.load_checkpoint
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ddp.checkpoint, "load_checkpoint", lambda *a, **k: loads.append(a) or load(*a, **k))
+        cost, why = estimate_seconds(run, stored)
     assert cost == pytest.approx(80.0) and "x 1 steps (its checkpoint is at 1)" in why
+    assert len(loads) == 1  # read once for the superseded check and the step
     # without step counts in the results: the median of the whole runs' cost, unscaled
     bare = [{**r, "train": {"seconds": r["train"]["seconds"]}} for r in stored]
     assert estimate_seconds(runs["far__ddp__seed1"], bare) == (250.0, "median of 1 stored far ddp run")

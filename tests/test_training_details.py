@@ -595,10 +595,20 @@ def test_compare_alternates_rounds_and_takes_their_medians(monkeypatch):
 # --------------------------------------------------------------------------- world_model.target_refresh_every
 
 
-def _train_counting_refreshes(recipe, out, max_steps):
-    """Train ``recipe`` to ``max_steps``; return the experiment and the step of every target-table refresh."""
+def _train_counting_refreshes(recipe, out, max_steps, moved_points: float = 0.0):
+    """Train ``recipe`` to ``max_steps``; return the experiment and the step of every target-table refresh.
+    ``moved_points``: the demos' point clouds shifted by that much (the same frame count, other frames)."""
     recipe["train"].update(max_steps=max_steps, epochs=100, log_every_steps=1)
     exp = build(recipe)
+    if moved_points:
+        demos = exp.episodes
+
+        def moved():
+            eps = demos()
+            eps.steps.set("point_cloud", eps.steps["point_cloud"] + moved_points)
+            return eps
+
+        exp.episodes = moved
     refreshed, orig = [], exp.model.refresh_target_table
     exp.model.refresh_target_table = lambda *a, **k: refreshed.append(len(calls)) or orig(*a, **k)
     calls, loss = [], exp.model.loss
@@ -638,6 +648,11 @@ def test_target_table_refreshes_on_schedule_and_resumes_with_its_targets(tmp_pat
     state["target_table"] = state["target_table"][:-1]
     save_checkpoint(tmp_path / "stale" / "last.pt", state)
     _, refreshed = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "stale", 8)
+    assert refreshed == [0]
+    # the same frame count, other frames (demos regenerated in place): refreshed at once too
+    _, refreshed = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "stale", 11)
+    assert refreshed == [2]  # the table of step 7 kept: next refresh at step 10
+    _, refreshed = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "stale", 12, moved_points=0.01)
     assert refreshed == [0]
 
 

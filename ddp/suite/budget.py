@@ -84,11 +84,11 @@ def _checkpoint_position(run: RunSpec) -> tuple[int, int] | None:
     from ddp.checkpoint import load_checkpoint
     from ddp.suite.superseded import superseded
 
-    if superseded(out, run.recipe, run.run_id) is not None:
-        return None
     try:
         state = load_checkpoint(out / "last.pt", mmap=True)
     except (DDPError, OSError):
+        return None
+    if superseded(out, run.recipe, run.run_id, state=state) is not None:
         return None
     step, epoch = state.get("step"), state.get("epoch")
     return (int(step), int(epoch) if isinstance(epoch, int) else 0) if isinstance(step, int) else None

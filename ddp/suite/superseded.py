@@ -21,10 +21,10 @@ from ddp.errors import DDPError
 __all__ = ["superseded", "set_aside", "set_aside_if_superseded"]
 
 
-def superseded(run_dir: str | Path, recipe: dict, source: str | None = None) -> str | None:
+def superseded(run_dir: str | Path, recipe: dict, source: str | None = None, state: dict | None = None) -> str | None:
     """Why ``run_dir/last.pt`` cannot continue ``recipe`` (``key: old -> new, ...``), or None: no
     checkpoint, one that resumes, or one that training reports on itself (unreadable, no stored recipe,
-    or a recipe that does not validate)."""
+    or a recipe that does not validate). ``state``: that checkpoint, if the caller loaded it already."""
     from ddp.checkpoint import load_checkpoint, stored_recipe
     from ddp.schema import validate
     from ddp.train import LAST, describe_changes, resume_conflicts
@@ -33,7 +33,7 @@ def superseded(run_dir: str | Path, recipe: dict, source: str | None = None) -> 
     if not path.is_file():
         return None
     try:
-        state = load_checkpoint(path, mmap=True)
+        state = load_checkpoint(path, mmap=True) if state is None else state
         resolved = validate(recipe, source)[2]
         changes = resume_conflicts(path, state, resolved)
         trained = stored_recipe(path, state).get("train", {})
