@@ -347,6 +347,36 @@ def test_a_generation_file_of_another_shape_is_no_match(mw_cache, tmp_path):
         assert other.cached_meta() is None, bad  # regenerated, not a traceback
 
 
+def test_a_cache_made_under_other_simulator_versions_is_used_with_a_warning(tmp_path, monkeypatch):
+    import json
+    import warnings
+
+    pytest.importorskip("metaworld")
+    from importlib.metadata import version
+
+    from ddp.data.sources.metaworld_expert import MetaWorldExpertDemos
+
+    fake = _synthetic(2)
+    monkeypatch.setattr(MetaWorldExpertDemos, "generate", lambda self, progress=True: (fake, {"attempts": 2}))
+    _source(_mw_recipe(tmp_path, episodes=2)).load()
+    monkeypatch.setattr(MetaWorldExpertDemos, "generate", lambda self, progress=True: 1 / 0)  # never again
+    meta_file = _source(_mw_recipe(tmp_path, episodes=2)).path / "generation.json"
+    meta = json.loads(meta_file.read_text())
+    assert meta["software"] == {"mujoco": version("mujoco"), "metaworld": version("metaworld")}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same versions: no warning
+        _source(_mw_recipe(tmp_path, episodes=2)).load()
+    meta_file.write_text(json.dumps({**meta, "software": {**meta["software"], "metaworld": "2.0.0"}}))
+    with pytest.warns(RuntimeWarning, match=f"metaworld 2.0.0 \\(now {version('metaworld')}\\).*data.regenerate=true"):
+        loaded = _source(_mw_recipe(tmp_path, episodes=2)).load()
+    assert loaded.num_episodes == 2  # used, not regenerated
+    del meta["software"]  # a cache written before versions were recorded: nothing to say
+    meta_file.write_text(json.dumps(meta))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _source(_mw_recipe(tmp_path, episodes=2)).load()
+
+
 def test_metaworld_cache_is_replaced_atomically(tmp_path, monkeypatch):
     pytest.importorskip("metaworld")
     from ddp.data.sources.metaworld_expert import MetaWorldExpertDemos

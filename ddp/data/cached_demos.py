@@ -34,6 +34,7 @@ import json
 import logging
 import os
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, ClassVar
@@ -137,6 +138,9 @@ class CachedExpertDemos:
     cache_version: ClassVar[int] = 1
     eval_only: ClassVar[tuple[str, ...]] = ()
     record_keys: ClassVar[dict] = {"point_cloud": "point_cloud", "agent_pos": "agent_pos"}
+    #: distributions whose versions decide the demos (the simulator, the expert): recorded in the cache, and a
+    #: cache made under other versions is used with a warning (``data.regenerate=true`` makes it again)
+    software: ClassVar[tuple[str, ...]] = ("mujoco",)
 
     def __init__(self, config: CachedDemosConfig, *, task, seed: int = 0, env=None):
         if env is None or env.plugin.name != self.env_name:
@@ -200,6 +204,30 @@ class CachedExpertDemos:
             "env_config": env_cfg,
             "env_config_hash": _digest(env_cfg),
         }
+
+    def software_versions(self) -> dict[str, str | None]:
+        """The installed version of each distribution in ``software`` (None: not installed)."""
+        from importlib.metadata import PackageNotFoundError, version
+
+        versions = {}
+        for dist in self.software:
+            try:
+                versions[dist] = version(dist)
+            except PackageNotFoundError:
+                versions[dist] = None
+        return versions
+
+    def _warn_if_other_software(self, meta: dict) -> None:
+        """One warning when the cache was generated under other versions of ``software`` than installed (a cache
+        written before versions were recorded says nothing)."""
+        recorded = meta.get("software")
+        if not isinstance(recorded, dict):
+            return
+        now = self.software_versions()
+        changed = [f"{d} {recorded.get(d)} (now {v})" for d, v in now.items() if recorded.get(d) != v]
+        if changed:
+            warnings.warn(f"{self.path}: demos generated under {', '.join(changed)}; they may differ from what "
+                          f"this install makes (data.regenerate=true makes them again)", RuntimeWarning, stacklevel=4)
 
     @property
     def states_per_draw(self) -> int | None:
@@ -284,7 +312,8 @@ class CachedExpertDemos:
 
         def write(tmp: Path) -> None:
             demos.save(tmp)
-            meta = {**self.generation_params(), "episodes": demos.num_episodes, "stats": stats, "created": time.time()}
+            meta = {**self.generation_params(), "episodes": demos.num_episodes, "stats": stats,
+                    "software": self.software_versions(), "created": time.time()}
             (tmp / GENERATION_FILE).write_text(json.dumps(meta, indent=1))
 
         return atomic_directory(path, write)
@@ -306,6 +335,8 @@ class CachedExpertDemos:
                 demos, stats = self.generate(progress=progress)
                 self.save(demos, stats)
                 meta = {"episodes": demos.num_episodes, "stats": stats}
+            else:
+                self._warn_if_other_software(meta)
         return {
             "path": self.path,
             "generated": generated,

@@ -128,6 +128,7 @@ class AdroitExpertDemos(CachedExpertDemos):
     env_name = "adroit"
     cache_format = CACHE_FORMAT
     cache_version = CACHE_VERSION
+    software = ("mujoco", "gymnasium-robotics")
     eval_only = _EVAL_ONLY
     record_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos", "full_state": ("privileged", "state")}
 

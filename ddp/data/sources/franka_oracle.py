@@ -75,6 +75,7 @@ class FrankaOracleDemos(CachedExpertDemos):
     env_name = "franka"
     cache_format = CACHE_FORMAT
     cache_version = CACHE_VERSION
+    software = ("mujoco", "robosuite")
     eval_only = _EVAL_ONLY
     record_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos", "object_pos": ("privileged", "object_pos")}
 

@@ -125,6 +125,7 @@ class MetaWorldExpertDemos(CachedExpertDemos):
     env_name = "metaworld"
     cache_format = CACHE_FORMAT
     cache_version = CACHE_VERSION
+    software = ("mujoco", "metaworld")
     eval_only = _EVAL_ONLY
     record_keys = {"point_cloud": "point_cloud", "agent_pos": "agent_pos", "full_state": ("privileged", "state")}
 
