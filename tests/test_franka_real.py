@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 import pytest
 
 from ddp.envs.franka.cameras import CalibrationError, load_calibration, make_camera
@@ -61,6 +62,39 @@ def test_limit_target_clips_to_box_and_step():
     pos, _, limited = limit_target(outside, DOWN_WXYZ, [0.6, 0.0, 0.3], DOWN_WXYZ, [0.2, -0.4, 0.01], [0.7, 0.4, 0.5],
                                    0.05, 0.3)
     assert limited and pos[0] == pytest.approx(0.2)
+    # a NaN measured position would pass every step limit (NaN > x is False): refused, the arm is not moved
+    with pytest.raises(ValueError, match="measured position must be 3 finite numbers"):
+        limit_target([np.nan, 0.0, 0.3], DOWN_WXYZ, [0.5, 0.3, 0.4], DOWN_WXYZ, [0, -1, 0], [1, 1, 1], 0.01, 0.05)
+
+
+def test_the_backend_never_moves_from_a_nan_measured_pose():
+    """FrankyBackend.move_to measures its step limits from the arm's pose: a NaN reading stops it there."""
+    from ddp.envs.franka.real import FrankyBackend, RealBackendConfig
+    from ddp.safety import NonFiniteError
+
+    class Robot:
+        moves = []
+
+        def poll_motion(self):
+            pass
+
+        def move(self, motion, asynchronous=False):
+            self.moves.append(motion)
+
+    backend = FrankyBackend.__new__(FrankyBackend)  # no franky here: the parts move_to reads before moving
+    backend.config, backend.robot = RealBackendConfig(), Robot()
+    backend.ee_pose = lambda: (np.array([np.nan, 0.0, 0.3]), DOWN_WXYZ)
+    with pytest.raises(NonFiniteError, match="franky backend: refused a non-finite measured end-effector pose"):
+        backend.move_to(np.array([0.5, 0.3, 0.4]), DOWN_WXYZ)
+    assert backend.robot.moves == []
+
+
+def test_require_finite_reads_bf16():
+    from ddp.safety import NonFiniteError, require_finite
+
+    require_finite("action", torch.zeros(3, dtype=torch.bfloat16), "test")
+    with pytest.raises(NonFiniteError, match="test: refused a non-finite action \\(1 of 3"):
+        require_finite("action", torch.tensor([0.0, float("nan"), 1.0], dtype=torch.bfloat16), "test")
 
 
 def test_control_never_sends_a_nonfinite_target():

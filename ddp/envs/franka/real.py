@@ -45,6 +45,7 @@ import numpy as np
 
 from ddp.config import check_choices
 from ddp.envs.franka.backend import CameraFrame, FrankaBackend, RobotMotionError
+from ddp.safety import require_finite
 
 __all__ = [
     "RealBackendConfig",
@@ -285,6 +286,8 @@ def limit_target(
     """
     cur = np.asarray(current_position, dtype=np.float64)
     tgt = np.asarray(target_position, dtype=np.float64)
+    if cur.shape != (3,) or not np.all(np.isfinite(cur)):  # NaN would pass every step limit below
+        raise ValueError(f"measured position must be 3 finite numbers; got {np.asarray(current_position).tolist()}")
     if tgt.shape != (3,) or not np.all(np.isfinite(tgt)):
         raise ValueError(f"target position must be 3 finite numbers; got {np.asarray(target_position).tolist()}")
     q_cur, q_tgt = _qnormalize(current_quaternion), _qnormalize(target_quaternion)
@@ -389,6 +392,9 @@ class FrankyBackend(FrankaBackend):
         except Exception as exc:
             self._raise_motion_error(exc)
         cur_p, cur_q = self.ee_pose()
+        # the step limits are measured from this pose: a NaN reading would pass them all (NaN > x is False)
+        require_finite("measured end-effector pose", np.concatenate([np.ravel(cur_p), np.ravel(cur_q)]),
+                       "franky backend")
         pos, quat, limited = limit_target(
             cur_p, cur_q, position, quaternion, self._low, self._high,
             cfg.max_step_translation, cfg.max_step_rotation, cfg.max_reach,
