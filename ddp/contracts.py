@@ -42,7 +42,9 @@ class Encoder(Protocol):
 
 
 class Denoiser(Protocol):
-    """Built as ``factory(config, input_dim=, global_cond_dim=[, local_cond_dim=])``."""
+    """Built as ``factory(config, input_dim=, global_cond_dim=[, local_cond_dim=])``. Optional: an int
+    ``length_multiple``, which every sequence length T must be a multiple of (checked against the recipe's
+    horizon and action steps when the model is built)."""
 
     def predict(self, sample, timestep, global_cond, local_cond=None) -> torch.Tensor:
         """The network's prediction for ``sample`` [B, T, input_dim] at ``timestep``."""

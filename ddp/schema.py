@@ -332,6 +332,16 @@ def _env_follows_task(part: Part, section, task: TaskConfig) -> Part:
     return Part(part.plugin, dataclasses.replace(part.config, **fill)) if fill else part
 
 
+def _world_model_unclipped(part: Part, section) -> Part:
+    """A world-model scheduler section that leaves ``clip_sample`` unset does not clip: latents are not in
+    [-1, 1] (the default section says ``clip_sample: false``; a section of one's own replaces it whole)."""
+    names = {f.name for f in dataclasses.fields(part.config)} if dataclasses.is_dataclass(part.config) else set()
+    given = section if isinstance(section, dict) else {}
+    if "clip_sample" in names and "clip_sample" not in given:
+        return Part(part.plugin, dataclasses.replace(part.config, clip_sample=False))
+    return part
+
+
 def _check_cross_section(recipe: Recipe, parts: dict[str, Part], source: str | None) -> None:
     """Rules that span sections: protocol names, and the env's shapes against ``task``."""
     from ddp.protocols.base import check_protocols
@@ -392,6 +402,8 @@ def validate(data: dict, source: str | None, *, import_plugins: bool = True) -> 
             raise
         if dotted == "env":
             part = _env_follows_task(part, _get(resolved, dotted), recipe.task)
+        elif dotted == "world_model.scheduler":
+            part = _world_model_unclipped(part, _get(resolved, dotted))
         if not import_plugins:
             _refuse_code_paths(part, dotted, source)
         parts[dotted] = part

@@ -87,6 +87,7 @@ def test_a_model_without_world_model_trains_on_windows_of_its_horizon(tiny_recip
     from ddp.data.sequence import SequenceDataset
 
     tiny_recipe["policy"].update(horizon=4, obs_steps=2, action_steps=3)
+    tiny_recipe["world_model"]["denoiser"]["down_dims"] = [16]  # no halving: it denoises N = 3 latents
     with_wm = build(tiny_recipe)
     assert with_wm.model.window == 5
     tiny_recipe["world_model"]["enabled"] = False

@@ -217,6 +217,27 @@ def test_values_that_would_crash_mid_run_are_refused_up_front(tiny_recipe, overr
         build(tiny_recipe, [override])
 
 
+@pytest.mark.parametrize("override, key, multiple", [("policy.horizon=14", "policy.horizon", 4),
+                                                      ("policy.action_steps=6", "policy.action_steps", 4)])
+def test_a_length_the_u_net_cannot_halve_is_refused_when_the_model_is_built(tiny_recipe, override, key, multiple):
+    """It failed at the first training step, after the demos (and named the horizon for action_steps)."""
+    for net in ("policy", "world_model"):
+        tiny_recipe[net]["denoiser"]["down_dims"] = [16, 32, 64]  # two halvings: lengths multiple of 4
+    msg = error_of(tiny_recipe, [override])
+    assert f"{key}: " in msg and f"is not a multiple of {multiple}" in msg
+
+
+def test_a_world_model_scheduler_of_ones_own_does_not_clip_unless_asked(tiny_recipe):
+    """Latents are not in [-1, 1]: a world_model.scheduler section without clip_sample (it replaces the
+    default section, which says false) took the scheduler's own default, true."""
+    tiny_recipe["world_model"]["scheduler"] = {"name": "ddim", "prediction_type": "sample"}
+    assert build(tiny_recipe).resolved["world_model"]["scheduler"]["clip_sample"] is False
+    tiny_recipe["world_model"]["scheduler"]["clip_sample"] = True  # asked for: kept
+    assert build(tiny_recipe).resolved["world_model"]["scheduler"]["clip_sample"] is True
+    tiny_recipe["policy"]["scheduler"] = {"name": "ddim"}  # the policy's actions are in [-1, 1]: its default
+    assert build(tiny_recipe).resolved["policy"]["scheduler"]["clip_sample"] is True
+
+
 def test_a_dict_recipe_resolves_its_base_from_the_working_directory():
     """build({"base": ...}) merges the base file (relative to the working directory) instead of dropping it;
     a base that does not exist is one line."""

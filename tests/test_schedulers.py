@@ -329,6 +329,7 @@ BAD_OPTIONS = [
     ("ddpm", {"prediction_type": "v_prediction"}, "prediction_type", "'v_prediction'"),
     ("ddim", {"num_inference_steps": 0}, "num_inference_steps", "0"),
     ("ddim", {"eta": -0.5}, "eta", "-0.5"),
+    ("ddim", {"eta": 1.5}, "eta", "1.5"),
     ("ddim", {"steps_offset": 10}, "steps_offset", "10"),
     ("ddim", {"timestep_spacing": "linspace"}, "timestep_spacing", "'linspace'"),
     ("consistency_flow", {"num_inference_steps": 0}, "num_inference_steps", "0"),
@@ -355,3 +356,56 @@ def test_bad_config_names_field_and_value(name, options, field, value):
 def test_direct_construction_raises_value_error():
     with pytest.raises(ValueError, match=r"num_inference_steps must be in \[1, num_train_timesteps=100\]; got 0"):
         get("scheduler", "ddim").config_cls(num_inference_steps=0)
+
+
+@pytest.mark.parametrize("name, options", [("ddim", {"prediction_type": "v_prediction"}),
+                                           ("ddim", {"timestep_spacing": "linspace"}),
+                                           ("ddpm", {"variance_type": "learned"}),
+                                           ("ddpm", {"beta_schedule": "cosine"})])
+def test_a_config_built_in_python_refuses_a_choice_it_does_not_have(name, options):
+    """Recipes are checked on load; a config built in Python ran the fall-through branch (v_prediction
+    trained against x0, linspace ran trailing spacing)."""
+    field, value = next(iter(options.items()))
+    with pytest.raises(ValueError, match=f"{field} must be one of .*; got '{value}'"):
+        get("scheduler", name).config_cls(**options)
+
+
+def test_ddim_at_eta_one_never_takes_a_negative_root():
+    """K 1000, one trailing step, alpha_bar after the last step = alpha_bar_0: sigma^2 equals
+    1 - alpha_bar' and rounds past it (NaN samples before the clamp)."""
+    plugin = get("scheduler", "ddim")
+    sched = plugin.factory(plugin.config_cls(num_train_timesteps=1000, num_inference_steps=1, eta=1.0,
+                                             timestep_spacing="trailing", set_alpha_to_one=False,
+                                             prediction_type="sample", clip_sample=False))
+    x = sched.sample(lambda x, k: torch.zeros_like(x), torch.randn(64, 16, 4), generator=torch.Generator().manual_seed(0))
+    assert torch.isfinite(x).all()
+
+
+@pytest.mark.parametrize("name", ["ddpm", "ddim", "consistency_flow"])
+def test_bf16_targets_train_at_the_float32_noise_levels(name):
+    """Under bf16 autocast the world model's targets (encoder latents) are bf16: the schedule arithmetic and
+    the diffusion steps stay in float32 (in bf16, 1 - alpha_bar was 0 at k = 0, 1 and step 999 read 1000)."""
+    plugin = get("scheduler", name)
+    options = {} if name == "consistency_flow" else {"num_train_timesteps": 1000}
+    sched = plugin.factory(plugin.config_cls(**options))
+    x0 = torch.randn(64, 8, 4)
+    seen = {}
+
+    def model(x, k):
+        seen["x"], seen["k"] = x, k
+        return torch.zeros_like(x)
+
+    loss32 = sched.loss(model, x0, generator=torch.Generator().manual_seed(0))
+    x32, k32 = seen["x"], seen["k"]
+    loss16 = sched.loss(model, x0.to(torch.bfloat16), generator=torch.Generator().manual_seed(0))
+    assert seen["k"].dtype == torch.float32 and torch.equal(seen["k"], k32)  # the same steps, exactly
+    # the same noised samples up to the targets' own bf16 rounding (x0 rounded to 3 significant digits)
+    torch.testing.assert_close(seen["x"].float(), x32, atol=0.02, rtol=0.01)
+    torch.testing.assert_close(loss16.float(), loss32, atol=0.01, rtol=0.01)
+    if name != "consistency_flow":  # add_noise itself: float32 noise levels, the sample's dtype back
+        k = torch.tensor([0, 1, 2, 3])
+        noise = torch.ones(4, 1)
+        out = sched.add_noise(torch.zeros(4, 1, dtype=torch.bfloat16), noise.to(torch.bfloat16), k)
+        assert out.dtype == torch.bfloat16
+        want = (1 - sched.alphas_cumprod[k]) ** 0.5
+        torch.testing.assert_close(out.float().squeeze(1), want, rtol=0.01, atol=0)

@@ -263,6 +263,11 @@ class UnetDenoiser(KeyedModule):
     default_in_keys = {"sample": "sample", "timestep": "timestep", "global_cond": "global_cond"}
     default_out_keys = {"prediction": "prediction"}
 
+    @property
+    def length_multiple(self) -> int:
+        """Sequence lengths T it takes are multiples of this (the model factory checks the recipe's)."""
+        return self.unet.time_divisor
+
     def __init__(self, config: Any, *, input_dim: int, global_cond_dim: int, local_cond_dim: int = 0) -> None:
         super().__init__()
         for name, value in (("input_dim", input_dim), ("global_cond_dim", global_cond_dim)):

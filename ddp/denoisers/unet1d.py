@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from ddp.config import check_choices
 from ddp.denoisers.blocks import UnetDenoiser, check_unet_options
 from ddp.registry import register
 
@@ -48,8 +49,7 @@ class ConditionalUnet1DConfig:
             self.blocks_per_level,
             self.mid_blocks,
         )
-        if self.condition_type != "film":
-            raise ValueError(f"condition_type must be 'film'; got {self.condition_type!r}")
+        check_choices(self)  # condition_type, cpu_weight_grad (a config built in Python is not checked on load)
 
 
 @register("denoiser", "unet1d", config=ConditionalUnet1DConfig)

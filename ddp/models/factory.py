@@ -32,6 +32,14 @@ def build_model(recipe: Recipe, parts: dict[str, Part]) -> DreamDiffusionPolicy:
             local_cond_dim=pol.obs_steps * latent,
         )
         wm_sched = parts["world_model.scheduler"].build()
+    # a U-Net halves T at each level: a length it cannot take fails here, not at the first training step
+    for net, length, key, what in ((policy_net, pol.horizon, "policy.horizon", "policy.denoiser"),
+                                   (wm_net, pol.action_steps, "policy.action_steps",
+                                    "world_model.denoiser (it denoises action_steps future latents)")):
+        multiple = getattr(net, "length_multiple", 1) if net is not None else 1
+        if length % multiple:
+            raise RecipeError(f"{length} is not a multiple of {multiple}, which {what} needs (one halving per "
+                              f"down_dims level after the first)", key=key)
     return DreamDiffusionPolicy(
         encoder=encoder,
         policy_net=policy_net,

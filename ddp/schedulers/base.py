@@ -28,6 +28,7 @@ from typing import Callable, NamedTuple
 
 import torch
 
+from ddp.config import check_choices
 from ddp.rng import per_row
 
 #: ``model_fn(x_t, t) -> prediction`` with ``x_t: [B, ...]`` and ``t: [B]`` (float).
@@ -90,6 +91,12 @@ def randint(high: int, shape, *, generator, device) -> torch.Tensor:
     return _draw(lambda sh, **kw: torch.randint(0, high, sh, **kw), shape, generator, device)
 
 
+def full_precision(dtype: torch.dtype) -> torch.dtype:
+    """``dtype``, or float32 for a narrower float (bf16 / fp16 under autocast): the dtype schedule arithmetic
+    runs in (float32 and float64 pass unchanged)."""
+    return torch.promote_types(dtype, torch.float32)
+
+
 def expand_as_batch(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     """Reshape per-sample values ``[B]`` to ``[B, 1, ..., 1]`` to broadcast against ``like``."""
     return values.reshape(values.shape[0], *([1] * (like.dim() - 1)))
@@ -130,7 +137,9 @@ def betas_for_schedule(
 
 
 def check_diffusion_fields(cfg) -> None:
-    """Validate the fields DDPM and DDIM configs share (raise ValueError naming the field)."""
+    """Validate the fields DDPM and DDIM configs share (raise ValueError naming the field), and every choice
+    field (a config built in Python is not checked by the recipe loader)."""
+    check_choices(cfg)
     if cfg.num_train_timesteps < 1:
         raise ValueError(f"num_train_timesteps must be >= 1; got {cfg.num_train_timesteps}")
     if cfg.beta_schedule != "squaredcos_cap_v2":
@@ -174,10 +183,11 @@ class DiscreteDiffusionScheduler(Scheduler):
 
     def add_noise(self, x0: torch.Tensor, noise: torch.Tensor, timesteps: torch.Tensor) -> torch.Tensor:
         """x_k = sqrt(alpha_bar_k) x_0 + sqrt(1 - alpha_bar_k) eps   (DDPM eq. 4); ``timesteps``: int ``[B]``."""
-        alpha_bar = self.alphas_cumprod.to(device=x0.device, dtype=x0.dtype)[timesteps.to(x0.device)]
+        work = full_precision(x0.dtype)  # in bf16, 1 - alpha_bar is 0 at k = 0, 1 and k = 2, 3 are one level
+        alpha_bar = self.alphas_cumprod.to(device=x0.device, dtype=work)[timesteps.to(x0.device)]
         sqrt_alpha_bar = expand_as_batch(alpha_bar**0.5, x0)
         sqrt_one_minus_alpha_bar = expand_as_batch((1 - alpha_bar) ** 0.5, x0)
-        return sqrt_alpha_bar * x0 + sqrt_one_minus_alpha_bar * noise
+        return (sqrt_alpha_bar * x0.to(work) + sqrt_one_minus_alpha_bar * noise.to(work)).to(x0.dtype)
 
     def loss(self, model_fn: ModelFn, x0: torch.Tensor, *, generator: torch.Generator | None = None) -> torch.Tensor:
         """Simplified DDPM objective (Ho et al. 2020, eq. 14).
@@ -186,6 +196,7 @@ class DiscreteDiffusionScheduler(Scheduler):
         loss = mean ||target - model_fn(x_k, k)||^2 with target = eps
         (``prediction_type="epsilon"``) or x_0 (``"sample"``, as in DP3).
         """
+        x0 = x0.to(full_precision(x0.dtype))  # bf16 targets (autocast): noise levels and steps kept exact
         noise = randn(x0.shape, generator=generator, device=x0.device, dtype=x0.dtype)
         timesteps = randint(self.config.num_train_timesteps, (x0.shape[0],), generator=generator, device=x0.device)
         x_k = self.add_noise(x0, noise, timesteps)

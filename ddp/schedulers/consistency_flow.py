@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import torch
 
 from ddp.registry import register
-from ddp.schedulers.base import ModelFn, Scheduler, expand_as_batch, rand, randn
+from ddp.schedulers.base import ModelFn, Scheduler, expand_as_batch, full_precision, rand, randn
 
 
 @dataclass
@@ -113,7 +113,7 @@ class ConsistencyFlowScheduler(Scheduler):
     def loss(self, model_fn: ModelFn, x0: torch.Tensor, *, generator: torch.Generator | None = None) -> torch.Tensor:
         """The consistency flow matching loss (module docstring, steps 1-4); calls ``model_fn`` twice."""
         cfg = self.config
-        a1 = x0
+        a1 = x0 = x0.to(full_precision(x0.dtype))  # bf16 targets (autocast): t + delta and segment ends kept exact
         a0 = randn(x0.shape, generator=generator, device=x0.device, dtype=x0.dtype)
         # 1. paired times
         t = rand((x0.shape[0],), generator=generator, device=x0.device, dtype=x0.dtype) * (1 - cfg.eps) + cfg.eps

@@ -3,7 +3,9 @@
 Trained with the same loss as DDPM; samples in ``num_inference_steps``
 strided steps (deterministically when ``eta = 0``). Numerically equal to
 ``diffusers.DDIMScheduler`` with the same options (no thresholding,
-``use_clipped_model_output=False``).
+``use_clipped_model_output=False``), except with ``timestep_spacing="trailing"`` and
+``num_train_timesteps`` not a multiple of ``num_inference_steps``: each step goes to the next listed
+timestep, where diffusers goes to ``k - K // n`` (beside the next one; see ``_previous``).
 """
 
 from __future__ import annotations
@@ -41,8 +43,8 @@ class DDIMConfig:
         K, n = self.num_train_timesteps, self.num_inference_steps
         if not 1 <= n <= K:
             raise ValueError(f"num_inference_steps must be in [1, num_train_timesteps={K}]; got {n}")
-        if self.eta < 0.0:
-            raise ValueError(f"eta must be >= 0; got {self.eta}")
+        if not 0.0 <= self.eta <= 1.0:  # past 1 the direction's variance 1 - alpha_bar' - sigma^2 goes negative
+            raise ValueError(f"eta must be in [0, 1]; got {self.eta}")
         if self.steps_offset < 0:
             raise ValueError(f"steps_offset must be >= 0; got {self.steps_offset}")
         if self.timestep_spacing == "leading" and (n - 1) * (K // n) + self.steps_offset >= K:
@@ -120,7 +122,8 @@ class DDIMScheduler(DiscreteDiffusionScheduler):
         variance = (beta_bar_prev / beta_bar_t) * (1 - alpha_bar_t / alpha_bar_prev)
         sigma_t = eta * variance**0.5
         # 4.
-        direction = (1 - alpha_bar_prev - sigma_t**2) ** 0.5 * pred_eps
+        # at eta 1 sigma^2 can equal 1 - alpha_bar' and round past it (a negative root: NaN)
+        direction = torch.clamp(1 - alpha_bar_prev - sigma_t**2, min=0.0) ** 0.5 * pred_eps
         x_prev = alpha_bar_prev**0.5 * pred_x0 + direction
         if eta > 0:
             z = randn(model_output.shape, generator=generator, device=model_output.device, dtype=model_output.dtype)
