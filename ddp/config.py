@@ -115,8 +115,13 @@ def coerce(value: Any, tp: Any, key: str, source: str | None) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise fail()
-        if not math.isfinite(value):
-            raise RecipeError(f"must be a finite number; got {value!r}", source=source, key=key)
+        try:
+            finite = math.isfinite(value)
+        except OverflowError:  # an int too large for a float
+            finite = False
+        if not finite:
+            shown = value if isinstance(value, float) else f"{str(value)[:12]}... ({len(str(value))} digits)"
+            raise RecipeError(f"must be a finite number; got {shown}", source=source, key=key)
         return float(value)
     if tp is str:
         if not isinstance(value, str):

@@ -15,9 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm.auto import tqdm
 
+from ddp.config import coerce, field_types
 from ddp.envs.chunked import ChunkedEnv, chunk_render_config
 from ddp.errors import RecipeError, suggest
 from ddp.protocols.base import EvalProtocol
+from ddp.schema import Part
 from ddp.video import VideoSettings
 
 
@@ -38,6 +40,9 @@ def check_env_options(exp, options: dict, *, source, key: str | None = None, nee
                           source=source, key=key)
     if not values:
         return
+    types_ = field_types(type(env.config))  # options set here skip the recipe loader's type checks
+    for name, value in options.items():
+        coerce(value, types_[name], name if key is None else f"{key}.{name}", source)
     try:
         dataclasses.replace(env.config, **options)
     except (TypeError, ValueError) as err:
@@ -90,7 +95,7 @@ class ChunkedEnvFactory:
         if self.plugin_modules:
             registry.import_plugin_modules(list(self.plugin_modules))
         cfg = chunk_render_config(self.config, self.action_steps, self.obs_steps)
-        base = registry.get("env", self.plugin).factory(cfg, seed=self.seed)
+        base = Part(registry.get("env", self.plugin), cfg).build(seed=self.seed)  # checked against the env contract
         return ChunkedEnv(base, self.action_steps, self.obs_steps, safe_lift=self.safe_lift, video=self.video)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Iterable
 
@@ -11,7 +12,7 @@ import torch
 from ddp.checkpoint import load_checkpoint
 from ddp.errors import CheckpointError, RecipeError
 from ddp.recipe import dump_yaml, load_recipe
-from ddp.schema import validate
+from ddp.schema import Part, validate
 
 
 class Experiment:
@@ -67,7 +68,7 @@ class Experiment:
         if part is None:
             raise RecipeError("this recipe has no env section", source=self.source, key="env")
         config = dataclasses.replace(part.config, **overrides) if overrides else part.config
-        return part.plugin.factory(config, seed=seed)
+        return Part(part.plugin, config).build(seed=seed)  # checked against the env contract
 
     def episodes(self):
         """The demonstrations (loaded once and cached)."""
@@ -206,11 +207,20 @@ def blame_override(err: RecipeError, overrides: list[str]) -> RecipeError:
     if not err.key:
         return err
     key = err.key.split("[")[0]
+    under = []  # overrides inside the section the error names (a rule across its options)
     for text in reversed(overrides):
         dotted = text.partition("=")[0].strip()
-        if key == dotted or key.startswith(dotted + ".") or dotted.startswith(key + "."):
+        if key == dotted or key.startswith(dotted + "."):
             return RecipeError(err.reason, source=f"--set {text}", key=err.key)
-    return err
+        if dotted.startswith(key + "."):
+            under.append(text)
+    # of those, the ones whose option the message names; else all of them (the last written first)
+    named = [t for t in under if re.search(rf"\b{re.escape(t.partition('=')[0].strip().rsplit('.', 1)[-1])}\b",
+                                           err.reason)]
+    blamed = named[:1] or under
+    if not blamed:
+        return err
+    return RecipeError(err.reason, source=", ".join(f"--set {t}" for t in blamed), key=err.key)
 
 
 def build(recipe: str | os.PathLike | dict, overrides: Iterable[str] = ()) -> Experiment:

@@ -126,9 +126,11 @@ def load_entry_points(force: bool = False) -> dict[str, str]:
         return dict(_failed)
     _entry_points_loaded = True
     for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        before = {kind: dict(parts) for kind, parts in _REGISTRY.items()}
         try:
             ep.load()
         except Exception as err:  # noqa: BLE001 - report any import failure by name
+            _restore(before)  # none of a failed plugin's parts (its module is gone: a worker could not import them)
             msg = f"{type(err).__name__}: {err}{shadowing_note(ep.module, getattr(ep, 'dist', None))}"
             _failed[ep.name] = msg
             warnings.warn(f"ddp plugin '{ep.name}' ({ep.value}) failed to import: {msg}", stacklevel=2)
@@ -138,13 +140,22 @@ def load_entry_points(force: bool = False) -> dict[str, str]:
 def import_plugin_modules(modules: list[str], *, source: str | None = None, key: str = "plugins") -> None:
     """Import modules listed under a recipe's ``plugins:`` key."""
     for i, mod in enumerate(modules):
+        before = {kind: dict(parts) for kind, parts in _REGISTRY.items()}
         try:
             importlib.import_module(mod)
         except Exception as err:  # noqa: BLE001
+            _restore(before)
             raise RecipeError(
                 f"cannot import plugin module '{mod}': {type(err).__name__}: {err}{shadowing_note(mod)}",
                 source=source, key=f"{key}[{i}]",
             ) from None
+
+
+def _restore(before: dict[str, dict]) -> None:
+    """The registry as it was before an import that failed part-way (the parts it registered are dropped)."""
+    for kind, parts in _REGISTRY.items():
+        parts.clear()
+        parts.update(before.get(kind, {}))
 
 
 def shadowing_note(module: str, dist=None) -> str:

@@ -103,6 +103,28 @@ def test_a_factory_function_is_checked_when_the_recipe_builds_it(tiny_recipe):
         registry.unregister("detector", "half_detector")
 
 
+def test_an_env_factory_function_is_checked_wherever_an_env_is_made(tiny_recipe):
+    """Envs were made by calling the factory directly: one without shift_end_effector failed at the first
+    tracking shift, mid-evaluation, with an AttributeError."""
+    from ddp.envs.synthetic_reach import SyntheticReachEnv, SyntheticReachEnvConfig
+    from ddp.evaluate import make_chunked_env
+
+    @ddp.register("env", "half_env", config=SyntheticReachEnvConfig)
+    def half_env(config, seed=None):
+        env = SyntheticReachEnv(config, seed=seed)
+        env.shift_end_effector = None  # not callable: the contract's method is missing
+        return env
+
+    try:
+        tiny_recipe["env"] = {**tiny_recipe["env"], "name": "half_env"}
+        exp = build(tiny_recipe)
+        for make in (lambda: exp.make_env(seed=0), lambda: make_chunked_env(exp, seed=0)):
+            with pytest.raises(PluginError, match="env 'half_env' .* lacks the method 'shift_end_effector\\(\\)'"):
+                make()
+    finally:
+        registry.unregister("env", "half_env")
+
+
 def test_the_controller_reads_renamed_detector_and_tracker_keys(tiny_recipe):
     """set_keys renames are honoured: the controller asks the part for its key, it does not assume one."""
     tiny_recipe["env"].update(displacement=True, displacement_chunk=1, displacement_delta=[0.2, 0.0, 0.0],

@@ -600,3 +600,21 @@ def test_a_subtask_target_beyond_the_trackers_objects_is_one_line(tiny_recipe):
     exp = make_exp(tiny_recipe, subtasks=[{"target": 3, "trigger": {"name": "chunk_index", "chunk": 4}}])
     with pytest.raises(RecipeError, match=r"controller.subtasks\[0\].target: target 3 is not one of the 1 object"):
         rollout(exp, exp.make_controller())
+
+
+def test_a_recovery_plugin_returning_nan_is_one_line_before_any_shift(tiny_recipe):
+    """The built-in recovery negates executed, finite shifts; a plugin's NaN stops in the controller, naming
+    the plugin, instead of reaching the env (where a hold setting turned it into another error)."""
+    from ddp.safety import NonFiniteError
+
+    exp = make_exp(tiny_recipe)
+    ctrl = exp.make_controller()
+    recover = ctrl.recovery.recover
+
+    def nan_recover(offsets, displaced, target):
+        shift, recovered = recover(offsets, displaced, target)
+        return shift * float("nan"), recovered
+
+    ctrl.recovery.recover = nan_recover
+    with pytest.raises(NonFiniteError, match="recovery '.*' returned a non-finite shift"):
+        rollout(exp, ctrl)

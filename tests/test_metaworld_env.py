@@ -3,6 +3,7 @@
 Simulator tests skip when metaworld is not installed; config validation runs without it.
 """
 
+import re
 import subprocess
 import sys
 
@@ -512,4 +513,23 @@ def test_detect_env_options_are_checked_on_top_of_each_protocol():
         _check_env(exp, {"displacment_chunk": 4}, ("ood_base",))
     exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.env={settle_steps: -1}"])
     with pytest.raises(RecipeError, match="eval.env.*settle_steps must be >= 0"):
+        env_overrides(exp, get_protocol("id"), None)
+
+
+
+@pytest.mark.parametrize("options, message", [
+    ("{visible_sites: obj}", "eval.env.visible_sites: expected tuple"),  # tuple("obj") read ('o', 'b', 'j')
+    ("{camera: off}", "eval.env.camera: expected str, got False"),
+    ("{max_episode_steps: 100.5}", "eval.env.max_episode_steps: expected int"),
+    ("{crop_min: [.nan, 0, 0]}", "eval.env.crop_min[0]: must be a finite number"),
+    ("{terminate_on_success: 'no'}", "eval.env.terminate_on_success: expected bool"),
+])
+def test_eval_env_values_are_type_checked_like_the_recipe(options, message):
+    """eval.env is a free mapping (its keys depend on the env): its values reached the env config unchecked."""
+    from ddp import build
+    from ddp.eval_runner import env_overrides
+    from ddp.protocols.base import get_protocol
+
+    exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=[f"eval.env={options}"])
+    with pytest.raises(RecipeError, match=re.escape(message)):
         env_overrides(exp, get_protocol("id"), None)

@@ -136,6 +136,15 @@ def test_override_errors_blame_the_override_not_the_file(good):
     assert msg.startswith("--set policy.scheduler.num_inference_steps=0: policy.scheduler") and "num_inference_steps" in msg
     msg = error_of(good, ["train.batch_size=4", "train.lrr=0.1"])
     assert msg.startswith("--set train.lrr=0.1: train.lrr: unknown option; did you mean 'lr'?")
+    # a rule across a section's options blames the override whose option the message names, not the last one
+    msg = error_of(good, ["train.batch_size=50", "train.micro_batches=4", "train.lr=1e-3"])
+    assert msg.startswith("--set train.micro_batches=4: train: micro_batches"), msg
+    msg = error_of(good, ["train.micro_batches=4", "train.batch_size=50", "train.lr=1e-3"])
+    assert msg.startswith("--set train.batch_size=50: train:"), msg  # the last of those it names
+    four = good.parent / "four.yaml"
+    four.write_text("base: good.yaml\ntrain: {micro_batches: 4}\n")
+    msg = error_of(four, ["train.batch_size=50", "train.lr=1e-3"])
+    assert msg.startswith("--set train.batch_size=50: train:"), msg  # micro_batches from the file
     # an error in the file itself still names the file, whatever --set did elsewhere
     bad = good.parent / "bad.yaml"
     bad.write_text("base: good.yaml\ntrain: {epochz: 3}\n")

@@ -87,7 +87,13 @@ def test_entry_point_plugins_are_discovered_and_failures_named(tmp_path):
         """,
         "noisy",
     )
-    _install_fake_dist(site, "ddp_broken", "ddp_broken_plugin", "raise ImportError('needs libfoo')\n", "broken")
+    _install_fake_dist(site, "ddp_broken", "ddp_broken_plugin", textwrap.dedent("""
+        import ddp
+        from ddp.detectors.never import NeverDetector, NeverConfig
+
+        ddp.register("detector", "half_registered", config=NeverConfig)(type("Half", (NeverDetector,), {}))
+        raise ImportError('needs libfoo')
+        """), "broken")
     script = textwrap.dedent(
         """
         import warnings
@@ -108,6 +114,7 @@ def test_entry_point_plugins_are_discovered_and_failures_named(tmp_path):
     env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}
     out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True).stdout
     assert "'noisy_threshold'" in out.split("NAMES")[1].splitlines()[0]
+    assert "half_registered" not in out.split("NAMES")[1].splitlines()[0]  # a failed plugin leaves no part
     assert "ddp plugin 'broken' (ddp_broken_plugin) failed to import: ImportError: needs libfoo" in out
     assert "CFG NoisyConfig" in out
     assert "did you mean 'noisy_threshold'" in out and "failed to import: broken" in out

@@ -44,6 +44,7 @@ from ddp.config import to_dict, without_neutral_defaults
 from ddp.data.demos import generate_demos
 from ddp.data.episodes import Episodes
 from ddp.errors import DDPError, RecipeError
+from ddp.schema import Part
 
 __all__ = ["CachedDemosConfig", "CachedExpertDemos", "GENERATION_FILE", "demo_env_config"]
 
@@ -269,12 +270,12 @@ class CachedExpertDemos:
     # ------------------------------------------------------------ generation
     def make_env(self):
         """The env with the demo config (point cloud rendered at every step)."""
-        return self.env_part.plugin.factory(self.env_config, seed=self.seed)
+        return Part(self.env_part.plugin, self.env_config).build(seed=self.seed)  # checked against the env contract
 
     def make_block_env(self, block: int):
         """The demo env drawing block ``block``'s initial states (the env config's ``demo_initial_states``)."""
         config = dataclasses.replace(self.env_config, **self.env_config.demo_initial_states(block))
-        return self.env_part.plugin.factory(config, seed=self.seed)
+        return Part(self.env_part.plugin, config).build(seed=self.seed)
 
     def generate(self, progress: bool = True) -> tuple[Episodes, dict]:
         """Generate the demos in memory (no cache): ``(episodes, stats)``."""
