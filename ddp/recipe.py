@@ -26,14 +26,19 @@ BASE_KEY = "base"
 
 
 class RecipeLoader(yaml.SafeLoader):
-    """PyYAML's safe loader with YAML 1.2 numbers: ``lr: 3e-4`` is a float, not the string '3e-4', and
-    ``seed: 010`` is 10, not octal 8 (``0o10`` is 8, ``0x10`` 16; ``1:30`` is a string, not 90)."""
+    """PyYAML's safe loader with YAML 1.2 scalars: ``lr: 3e-4`` is a float, not the string '3e-4', and
+    ``seed: 010`` is 10, not octal 8 (``0o10`` is 8, ``0x10`` 16; ``1:30`` and ``1:30.5`` are strings, not
+    sexagesimal 90 / 90.5); only true / false are booleans (``on``, ``off``, ``yes``, ``no`` are strings) and
+    ``2024-06-01`` is a string, not a date."""
 
 
-_INT = "tag:yaml.org,2002:int"
+_INT, _FLOAT, _BOOL = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float", "tag:yaml.org,2002:bool"
+_YAML11_ONLY = {_INT, _FLOAT, _BOOL, "tag:yaml.org,2002:timestamp"}  # replaced below by their YAML 1.2 forms
 RecipeLoader.yaml_implicit_resolvers = {
-    k: [(tag, rx) for tag, rx in v if tag != _INT] for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()
+    k: [(tag, rx) for tag, rx in v if tag not in _YAML11_ONLY]
+    for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()
 }
+RecipeLoader.add_implicit_resolver(_BOOL, re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF"))
 RecipeLoader.add_implicit_resolver(_INT, re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"),
                                    list("-+0123456789"))
 

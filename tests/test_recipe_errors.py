@@ -265,3 +265,8 @@ def test_recipe_numbers_follow_yaml_1_2():
     assert load_yaml("{a: 010, b: 0o10, c: 0x10, d: 1:30, e: 3e-4, f: -7}") == {
         "a": 10, "b": 8, "c": 16, "d": "1:30", "e": 3e-4, "f": -7}
     assert parse_override("seed=010") == (["seed"], 10)
+    # YAML 1.1's sexagesimal floats, yes / no / on / off booleans and dates are YAML 1.2 strings
+    assert load_yaml("{a: 1:30.5, b: on, c: off, d: yes, e: No, f: 2024-06-01, g: true, h: False}") == {
+        "a": "1:30.5", "b": "on", "c": "off", "d": "yes", "e": "No", "f": "2024-06-01", "g": True, "h": False}
+    assert parse_override("train.lr=1:30.5") == (["train", "lr"], "1:30.5")
+    assert "expected bool, got 'on'" in error_of({"name": "x"}, ["train.autocast_bf16=on"])
