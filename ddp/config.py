@@ -190,7 +190,9 @@ def from_dict(cls: type, data: dict | None, *, key: str = "", source: str | None
     for f in dataclasses.fields(cls):
         if not f.init:
             continue
-        if f.name in data:
+        if f.name in data and data[f.name] is None and types_[f.name] is dict and f.default_factory is not _MISSING:
+            kwargs[f.name] = f.default_factory()  # null for a mapping option: its default (an overlay clears a base's)
+        elif f.name in data:
             kwargs[f.name] = coerce(data[f.name], types_[f.name], _join(key, f.name), source)
         elif f.default is _MISSING and f.default_factory is _MISSING:
             raise RecipeError("missing required option", source=source, key=_join(key, f.name))

@@ -247,6 +247,18 @@ def test_a_world_model_scheduler_of_ones_own_does_not_clip_unless_asked(tiny_rec
     assert build(tiny_recipe).resolved["policy"]["scheduler"]["clip_sample"] is True
 
 
+def test_null_restores_a_mapping_options_default_so_an_overlay_can_clear_its_bases(tmp_path, good):
+    """An overlay could not clear eval.env set by its base ({} merges as no change, null was refused)."""
+    base = write(tmp_path, "b.yaml", "base: good.yaml\neval: {env: {seed_tasks: 1}}\n")
+    assert build(base).resolved["eval"]["env"] == {"seed_tasks": 1}
+    top = write(tmp_path, "t.yaml", "base: b.yaml\neval: {env: null}\n")
+    assert build(top).resolved["eval"]["env"] == {}
+    assert build(base, ["eval.env=null"]).resolved["eval"]["env"] == {}
+    # a plugin section's null is its default part; an optional one (tracker) stays off
+    assert build(base, ["world_model.scheduler=null"]).resolved["world_model"]["scheduler"]["clip_sample"] is False
+    assert build(base, ["controller.tracker=null"]).resolved["controller"]["tracker"] is None
+
+
 def test_a_dict_recipe_resolves_its_base_from_the_working_directory():
     """build({"base": ...}) merges the base file (relative to the working directory) instead of dropping it;
     a base that does not exist is one line."""
