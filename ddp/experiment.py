@@ -208,11 +208,13 @@ def blame_override(err: RecipeError, overrides: list[str]) -> RecipeError:
         return err
     key = err.key.split("[")[0]
     under = []  # overrides inside the section the error names (a rule across its options)
-    for text in reversed(overrides):
+    for text in reversed(overrides):  # the last override writing the key wins
         dotted = text.partition("=")[0].strip()
-        if key == dotted or key.startswith(dotted + "."):
-            return RecipeError(err.reason, source=f"--set {text}", key=err.key)
-        if dotted.startswith(key + "."):
+        if any(k == dotted or k.startswith((dotted + ".", dotted + "[")) for k in (err.key, key)):
+            if not under:
+                return RecipeError(err.reason, source=f"--set {text}", key=err.key)
+            break  # it wrote the whole section; later overrides wrote inside it
+        if any(dotted.startswith((k + ".", k + "[")) for k in (err.key, key)):
             under.append(text)
     # of those, the ones whose option the message names; else all of them (the last written first)
     named = [t for t in under if re.search(rf"\b{re.escape(t.partition('=')[0].strip().rsplit('.', 1)[-1])}\b",

@@ -150,15 +150,24 @@ def load_yaml_tree(path: str | os.PathLike, _chain: tuple[Path, ...] = (), _refe
     return merge(merged, data)
 
 
-def parse_override(text: str) -> tuple[list[str], Any]:
-    """``"policy.scheduler.num_inference_steps=5"`` -> (["policy", ...], 5)."""
+_KEY_PART = re.compile(r"^([A-Za-z0-9_-]+)((?:\[[0-9]+\])*)$")
+
+
+def parse_override(text: str) -> tuple[list[str | int], Any]:
+    """``"policy.scheduler.num_inference_steps=5"`` -> (["policy", ...], 5); a list item is addressed by its
+    index, ``"controller.subtasks[0].target=1"`` -> (["controller", "subtasks", 0, "target"], 1)."""
     if not isinstance(text, str) or "=" not in text:
         raise RecipeError(f"bad override {text!r}: expected key.path=value", source="--set")
     key, _, raw = text.partition("=")
     key = key.strip()
-    parts = key.split(".")
-    if not key or any(not p or not p.replace("_", "").replace("-", "").isalnum() for p in parts):
-        raise RecipeError(f"bad override {text!r}: '{key}' is not a dotted key like a.b.c", source="--set")
+    parts: list[str | int] = []
+    for piece in key.split(".") if key else [""]:
+        match = _KEY_PART.match(piece)
+        if match is None:
+            raise RecipeError(f"bad override {text!r}: '{key}' is not a dotted key like a.b.c (or a.b[0].c)",
+                              source="--set")
+        parts.append(match.group(1))
+        parts.extend(int(i) for i in re.findall(r"\[([0-9]+)\]", match.group(2)))
     try:
         value = load_yaml(raw) if raw.strip() else None
     except yaml.YAMLError:
@@ -166,23 +175,36 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return parts, value
 
 
+def _dotted(parts: list[str | int]) -> str:
+    """``["a", "b", 0, "c"]`` -> ``"a.b[0].c"``."""
+    return "".join(f"[{p}]" if isinstance(p, int) else (f".{p}" if i else p) for i, p in enumerate(parts))
+
+
 def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
     out = copy.deepcopy(data)
     for text in overrides:
         parts, value = parse_override(text)
         node = out
-        for i, part in enumerate(parts[:-1]):
-            child = node.get(part)
-            if child is None:
-                child = node[part] = {}
-            if not isinstance(child, dict):
-                raise RecipeError(
-                    f"cannot set '{'.'.join(parts)}': '{'.'.join(parts[: i + 1])}' is {child!r}, not a mapping",
-                    source="--set",
-                    key=".".join(parts),
-                )
-            node = child
-        node[parts[-1]] = value
+        for i, part in enumerate(parts):
+            last = i == len(parts) - 1
+            where = _dotted(parts[:i])
+            if isinstance(part, int):  # a list item: it must exist (a list is not grown by --set)
+                if not isinstance(node, list):
+                    raise RecipeError(f"cannot set '{_dotted(parts)}': '{where}' is {node!r}, not a list",
+                                      source="--set", key=_dotted(parts))
+                if part >= len(node):
+                    raise RecipeError(f"cannot set '{_dotted(parts)}': '{where}' has {len(node)} items "
+                                      f"(indices 0..{len(node) - 1})", source="--set", key=_dotted(parts))
+            elif not isinstance(node, dict):
+                raise RecipeError(f"cannot set '{_dotted(parts)}': '{where}' is {node!r}, not a mapping",
+                                  source="--set", key=_dotted(parts))
+            if last:
+                node[part] = value
+            else:
+                child = node[part] if isinstance(part, int) else node.get(part)
+                if child is None:
+                    child = node[part] = {}
+                node = child
     return out
 
 

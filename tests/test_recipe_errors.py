@@ -122,13 +122,33 @@ def test_recipe_file_not_found(tmp_path):
     "override, expected",
     [
         ("policy.horizon", "--set: bad override 'policy.horizon': expected key.path=value"),
-        ("policy..horizon=3", "--set: bad override 'policy..horizon=3': 'policy..horizon' is not a dotted key like a.b.c"),
+        ("policy..horizon=3", "--set: bad override 'policy..horizon=3': 'policy..horizon' is not a dotted key like a.b.c "
+                              "(or a.b[0].c)"),
         ("policy.horizon=[1", "--set: policy.horizon: bad override 'policy.horizon=[1': the value is not valid YAML"),
         ("name.sub=1", "--set: name.sub: cannot set 'name.sub': 'name' is 'tiny', not a mapping"),
+        ("name[0]=1", "--set: name[0]: cannot set 'name[0]': 'name' is 'tiny', not a list"),
+        ("policy.denoiser.down_dims[2]=64", "--set: policy.denoiser.down_dims[2]: cannot set "
+         "'policy.denoiser.down_dims[2]': 'policy.denoiser.down_dims' has 2 items (indices 0..1)"),
+        ("controller.subtasks[x].target=0", "--set: bad override 'controller.subtasks[x].target=0': "
+         "'controller.subtasks[x].target' is not a dotted key like a.b.c (or a.b[0].c)"),
     ],
 )
 def test_bad_override_syntax(good, override, expected):
     assert error_of(good, [override]) == expected
+
+
+def test_a_list_item_is_set_by_its_index(good):
+    """controller.subtasks[0].target=1 (it was refused as 'not a dotted key'); errors inside it blame it."""
+    from ddp.recipe import parse_override
+
+    assert parse_override("controller.subtasks[0].trigger.chunk=3") == (
+        ["controller", "subtasks", 0, "trigger", "chunk"], 3)
+    two = ["controller.subtasks=[{target: 0, trigger: {name: chunk_index, chunk: 2}}, {target: null}]"]
+    exp = build(good, two + ["controller.subtasks[0].trigger.chunk=5", "controller.subtasks[1].target=0"])
+    subtasks = exp.resolved["controller"]["subtasks"]
+    assert subtasks[0]["trigger"]["chunk"] == 5 and subtasks[1]["target"] == 0
+    msg = error_of(good, two + ["controller.subtasks[0].trigger.chunk=-1"])
+    assert msg.startswith("--set controller.subtasks[0].trigger.chunk=-1: controller.subtasks[0].trigger"), msg
 
 
 def test_override_errors_blame_the_override_not_the_file(good):
