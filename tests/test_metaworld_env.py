@@ -519,7 +519,7 @@ def test_detect_env_options_are_checked_on_top_of_each_protocol():
 
 @pytest.mark.parametrize("options, message", [
     ("{visible_sites: obj}", "eval.env.visible_sites: expected tuple"),  # tuple("obj") read ('o', 'b', 'j')
-    ("{camera: off}", "eval.env.camera: expected str, got False"),
+    ("{camera: 3}", "eval.env.camera: expected str, got 3"),
     ("{max_episode_steps: 100.5}", "eval.env.max_episode_steps: expected int"),
     ("{crop_min: [.nan, 0, 0]}", "eval.env.crop_min[0]: must be a finite number"),
     ("{terminate_on_success: 'no'}", "eval.env.terminate_on_success: expected bool"),
