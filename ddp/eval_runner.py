@@ -42,11 +42,20 @@ def check_env_options(exp, options: dict, *, source, key: str | None = None, nee
         return
     types_ = field_types(type(env.config))  # options set here skip the recipe loader's type checks
     for name, value in options.items():
-        coerce(value, types_[name], name if key is None else f"{key}.{name}", source)
+        coerce(_plain(value), types_[name], name if key is None else f"{key}.{name}", source)
     try:
         dataclasses.replace(env.config, **options)
     except (TypeError, ValueError) as err:
         raise RecipeError(str(err).splitlines()[0], source=source, key=key) from None
+
+
+def _plain(value):
+    """numpy scalars and arrays as Python numbers and lists (a caller's np.float32(0.1) is a float option)."""
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    if isinstance(value, (list, tuple)):
+        return type(value)(_plain(v) for v in value)
+    return value
 
 
 def env_overrides(exp, protocol: EvalProtocol, max_steps: int | None, extra: dict | None = None,

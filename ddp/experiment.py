@@ -206,19 +206,21 @@ def blame_override(err: RecipeError, overrides: list[str]) -> RecipeError:
     """``err`` re-attributed to the ``--set`` override that wrote its key, if one did."""
     if not err.key:
         return err
-    key = err.key.split("[")[0]
-    under = []  # overrides inside the section the error names (a rule across its options)
+    key, under = err.key, []  # under: overrides inside the section the error names (a rule across its options)
     for text in reversed(overrides):  # the last override writing the key wins
         dotted = text.partition("=")[0].strip()
-        if any(k == dotted or k.startswith((dotted + ".", dotted + "[")) for k in (err.key, key)):
+        if key == dotted or key.startswith((dotted + ".", dotted + "[")):
             if not under:
-                return RecipeError(err.reason, source=f"--set {text}", key=err.key)
+                return RecipeError(err.reason, source=f"--set {text}", key=key)
             break  # it wrote the whole section; later overrides wrote inside it
-        if any(dotted.startswith((k + ".", k + "[")) for k in (err.key, key)):
+        if dotted.startswith((key + ".", key + "[")):
             under.append(text)
-    # of those, the ones whose option the message names; else all of them (the last written first)
-    named = [t for t in under if re.search(rf"\b{re.escape(t.partition('=')[0].strip().rsplit('.', 1)[-1])}\b",
-                                           err.reason)]
+    # of those, the ones whose option (its last name, without an index) the message names; else all of them
+
+    def option(text: str) -> str:
+        return re.sub(r"\[[0-9]+\]", "", text.partition("=")[0].strip()).rsplit(".", 1)[-1]
+
+    named = [t for t in under if re.search(rf"\b{re.escape(option(t))}\b", err.reason)]
     blamed = named[:1] or under
     if not blamed:
         return err

@@ -202,6 +202,11 @@ def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
                 node[part] = value
             else:
                 child = node[part] if isinstance(part, int) else node.get(part)
+                if child is None and isinstance(parts[i + 1], int):  # nothing to index: a default is not here yet
+                    raise RecipeError(f"cannot set '{_dotted(parts)}': the recipe does not set "
+                                      f"'{_dotted(parts[:i + 1])}' (its default list is not indexable here): "
+                                      "set the whole list",
+                                      source="--set", key=_dotted(parts))
                 if child is None:
                     child = node[part] = {}
                 node = child

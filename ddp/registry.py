@@ -17,6 +17,7 @@ import importlib
 import importlib.metadata
 import importlib.util
 import os
+import sys
 import warnings
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -152,10 +153,12 @@ def import_plugin_modules(modules: list[str], *, source: str | None = None, key:
 
 
 def _restore(before: dict[str, dict]) -> None:
-    """The registry as it was before an import that failed part-way (the parts it registered are dropped)."""
+    """After an import that failed part-way: drop the parts registered since ``before`` by modules Python
+    dropped with it (the failed module); parts of modules it imported successfully (built-ins, a package's
+    own ``__init__``) stay, as those modules stay imported and would never register again."""
     for kind, parts in _REGISTRY.items():
-        parts.clear()
-        parts.update(before.get(kind, {}))
+        for name in [n for n, p in parts.items() if n not in before.get(kind, {}) and p.module not in sys.modules]:
+            del parts[name]
 
 
 def shadowing_note(module: str, dist=None) -> str:

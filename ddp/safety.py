@@ -68,7 +68,8 @@ DELTAS = HoldSpec()
 
 def require_finite(name: str, value, where: str) -> None:
     """Refuse a non-finite action (the env side of "a robot never receives a non-finite action")."""
-    arr = (value.detach().float().cpu().numpy() if isinstance(value, torch.Tensor)  # bf16 has no numpy dtype
+    arr = (value.detach().to(torch.promote_types(value.dtype, torch.float32)).cpu().numpy()  # bf16: no numpy dtype
+           if isinstance(value, torch.Tensor)
            else np.asarray(value, dtype=np.float64))
     if not np.isfinite(arr).all():
         bad = int((~np.isfinite(arr)).sum())

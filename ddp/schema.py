@@ -280,7 +280,16 @@ class Part:
         from ddp.contracts import check
 
         part = self.plugin.factory(self.config, **context)
-        check(self.plugin.kind, part, name=self.plugin.name, module=self.plugin.module)
+        try:
+            check(self.plugin.kind, part, name=self.plugin.name, module=self.plugin.module)
+        except Exception:
+            close = getattr(part, "close", None)  # an env holds a renderer or a robot connection
+            if callable(close):
+                try:
+                    close()
+                except Exception:  # noqa: BLE001 - the contract error is the one to report
+                    pass
+            raise
         return part
 
     def as_dict(self) -> dict:

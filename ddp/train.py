@@ -124,9 +124,9 @@ def frames_digest(steps) -> str:
     resumed run reuses a checkpointed table only for the same frames."""
     h = hashlib.sha256()
     for key in ("point_cloud", "agent_pos"):
-        values = steps[key]
+        values = steps[key].detach().cpu().contiguous()
         h.update(f"{key}{tuple(values.shape)}{values.dtype}".encode())
-        h.update(values.detach().cpu().contiguous().numpy().tobytes())
+        h.update(memoryview(values.view(torch.uint8).numpy()))  # the bytes as stored, any dtype, no copy
     return h.hexdigest()[:16]
 
 
@@ -259,8 +259,9 @@ class Trainer:
             step, epoch, batch_in_epoch = int(state["step"]), int(state["epoch"]), int(state["batch_in_epoch"])
             table = state.get("target_table") if refresh else None
             # reused only for the very frames it encoded (else other demos: refresh now)
+            stored_frames = state.get("target_table_frames", table_frames)  # checkpoints before the digest: by shape
             if (table is not None and table.shape[0] == dataset.steps.shape[0]
-                    and state.get("target_table_frames") == table_frames):
+                    and stored_frames == table_frames):
                 model.target_table = table.to(self.device)
                 table_step = int(state["target_table_step"])
             if cfg.logger == "csv" and ranks.main:

@@ -109,10 +109,20 @@ def test_an_env_factory_function_is_checked_wherever_an_env_is_made(tiny_recipe)
     from ddp.envs.synthetic_reach import SyntheticReachEnv, SyntheticReachEnvConfig
     from ddp.evaluate import make_chunked_env
 
+    made = []
+
     @ddp.register("env", "half_env", config=SyntheticReachEnvConfig)
     def half_env(config, seed=None):
         env = SyntheticReachEnv(config, seed=seed)
         env.shift_end_effector = None  # not callable: the contract's method is missing
+        close, env.closed = env.close, False
+
+        def recorded_close(*args, **kwargs):
+            env.closed = True
+            return close(*args, **kwargs)
+
+        env.close = recorded_close
+        made.append(env)
         return env
 
     try:
@@ -121,6 +131,7 @@ def test_an_env_factory_function_is_checked_wherever_an_env_is_made(tiny_recipe)
         for make in (lambda: exp.make_env(seed=0), lambda: make_chunked_env(exp, seed=0)):
             with pytest.raises(PluginError, match="env 'half_env' .* lacks the method 'shift_end_effector\\(\\)'"):
                 make()
+            assert made[-1].closed  # the refused env is closed (its renderer, a robot's connection)
     finally:
         registry.unregister("env", "half_env")
 

@@ -93,6 +93,7 @@ def test_require_finite_reads_bf16():
     from ddp.safety import NonFiniteError, require_finite
 
     require_finite("action", torch.zeros(3, dtype=torch.bfloat16), "test")
+    require_finite("action", torch.tensor([1e300], dtype=torch.float64), "test")  # finite: not cast down to inf
     with pytest.raises(NonFiniteError, match="test: refused a non-finite action \\(1 of 3"):
         require_finite("action", torch.tensor([0.0, float("nan"), 1.0], dtype=torch.bfloat16), "test")
 

@@ -533,3 +533,17 @@ def test_eval_env_values_are_type_checked_like_the_recipe(options, message):
     exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=[f"eval.env={options}"])
     with pytest.raises(RecipeError, match=re.escape(message)):
         env_overrides(exp, get_protocol("id"), None)
+
+
+
+def test_env_option_values_from_python_may_be_numpy():
+    """A caller's numpy values (np.int64 seeds, np.float32 settings, arrays for tuples) pass the type check."""
+    from ddp import build
+    from ddp.eval_runner import env_overrides
+    from ddp.protocols.base import get_protocol
+
+    exp = build("recipes/metaworld/quickstart_ddp.yaml")
+    extra = {"seed_tasks": np.int64(3), "settle_steps": np.int64(5), "crop_min": np.array([-0.6, 0.3, 0.0]),
+             "terminate_on_success": np.bool_(False)}
+    over = env_overrides(exp, get_protocol("id"), None, extra=extra)
+    assert over["seed_tasks"] == 3 and over["settle_steps"] == 5

@@ -129,6 +129,9 @@ def test_recipe_file_not_found(tmp_path):
         ("name[0]=1", "--set: name[0]: cannot set 'name[0]': 'name' is 'tiny', not a list"),
         ("policy.denoiser.down_dims[2]=64", "--set: policy.denoiser.down_dims[2]: cannot set "
          "'policy.denoiser.down_dims[2]': 'policy.denoiser.down_dims' has 2 items (indices 0..1)"),
+        ("controller.subtasks[0].target=0", "--set: controller.subtasks[0].target: cannot set "
+         "'controller.subtasks[0].target': the recipe does not set 'controller.subtasks' (its default list is not "
+         "indexable here): set the whole list"),
         ("controller.subtasks[x].target=0", "--set: bad override 'controller.subtasks[x].target=0': "
          "'controller.subtasks[x].target' is not a dotted key like a.b.c (or a.b[0].c)"),
     ],
@@ -149,6 +152,14 @@ def test_a_list_item_is_set_by_its_index(good):
     assert subtasks[0]["trigger"]["chunk"] == 5 and subtasks[1]["target"] == 0
     msg = error_of(good, two + ["controller.subtasks[0].trigger.chunk=-1"])
     assert msg.startswith("--set controller.subtasks[0].trigger.chunk=-1: controller.subtasks[0].trigger"), msg
+    # an override of another item is not blamed for this one's error (the file's, or the list's override, is)
+    bad_file = good.parent / "bad_item.yaml"
+    bad_file.write_text("base: good.yaml\ncontroller:\n  subtasks:\n    - {target: 0, trigger: {name: chunk_index, "
+                        "chunk: -1}}\n    - {target: null}\n")
+    assert error_of(bad_file, ["controller.subtasks[1].target=0"]).startswith(f"{bad_file}: controller.subtasks[0]")
+    bad_list = ["controller.subtasks=[{target: 0, trigger: {name: chunk_index, chunk: -1}}, {target: null}]"]
+    msg = error_of(good, bad_list + ["controller.subtasks[1].target=0"])
+    assert msg.startswith(f"--set {bad_list[0]}: controller.subtasks[0]"), msg
 
 
 def test_override_errors_blame_the_override_not_the_file(good):

@@ -174,3 +174,33 @@ def test_importing_evaluation_loads_no_env_plugin_or_simulator():
     code = "import sys; from ddp import registry; registry.get('env', 'synthetic_reach'); print('ddp.envs.metaworld' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     assert out.stdout.strip() == "True"  # the first env lookup loads the built-in env modules
+
+
+def test_a_failing_recipe_plugin_leaves_the_builtins_it_imported(tmp_path):
+    """Its own parts go; the built-ins it imported (and that registered during its import) stay: their
+    modules stay imported and would never register again (every kind was left empty)."""
+    (tmp_path / "half_plugin.py").write_text(textwrap.dedent("""
+        import ddp
+        from ddp import registry
+        from ddp.detectors.never import NeverDetector, NeverConfig
+
+        registry.get("scheduler", "ddim")  # a lookup while importing loads every built-in kind
+        ddp.register("detector", "half_registered", config=NeverConfig)(type("Half", (NeverDetector,), {}))
+        raise ImportError("needs libfoo")
+        """))
+    script = textwrap.dedent("""
+        from ddp import registry
+        from ddp.errors import RecipeError
+        try:
+            registry.import_plugin_modules(["half_plugin"])
+        except RecipeError as err:
+            print("ERR", err)
+        print("SCHED", registry.list_plugins("scheduler"))
+        print("DET", registry.list_plugins("detector"))
+        """)
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True).stdout
+    assert "cannot import plugin module 'half_plugin': ImportError: needs libfoo" in out
+    assert "'ddim'" in out.split("SCHED")[1].splitlines()[0]
+    detectors = out.split("DET")[1].splitlines()[0]
+    assert "'discrepancy'" in detectors and "half_registered" not in detectors

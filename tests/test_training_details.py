@@ -654,6 +654,13 @@ def test_target_table_refreshes_on_schedule_and_resumes_with_its_targets(tmp_pat
     assert refreshed == [2]  # the table of step 7 kept: next refresh at step 10
     _, refreshed = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "stale", 12, moved_points=0.01)
     assert refreshed == [0]
+    # a checkpoint written before the digest was stored keeps its table when the frame count matches
+    state = load_checkpoint(tmp_path / "stale" / "last.pt")
+    assert state["target_table_step"] == 11
+    del state["target_table_frames"]
+    save_checkpoint(tmp_path / "stale" / "last.pt", state)
+    _, refreshed = _train_counting_refreshes(copy.deepcopy(recipe), tmp_path / "stale", 13, moved_points=0.01)
+    assert refreshed == []  # table of step 11 kept: next refresh at step 14
 
 
 def test_an_interrupted_fit_saves_the_target_table_and_drops_it_from_the_model(tmp_path):
