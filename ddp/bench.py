@@ -13,6 +13,7 @@ serve both are in both) in alternating rounds in this process, and gives the cos
 
 from __future__ import annotations
 
+import math
 import statistics
 import time
 
@@ -74,7 +75,7 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     window = (1, model.obs_steps, model.encoder.out_dim)
     det_td = TensorDict({("ddp", "latent_real"): torch.rand(window),
                          ("ddp", "latent_pred"): torch.rand(window), "chunk_index": torch.ones(1, 1, dtype=torch.long)},
-                        batch_size=[1])
+                        batch_size=[1], device=dev)  # on the timed device, as the controller's latents are
     out["detector_ms"] = _timed(lambda: ctrl.detector(det_td), repeats=repeats, warmup=warmup, device=dev)
     out["control_cycle_ms"] = _timed(lambda: ctrl(td.clone()), repeats=repeats, warmup=warmup, device=dev)
     # what the robot waits for with the next forecast made in the background while the chunk executes
@@ -107,10 +108,19 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     opt = make_optimizer(model, r.train)
     ema = EMA(model, r.ema) if r.ema.enabled else None
 
+    # the trainer's step as the recipe sets it: compile, bf16 autocast, micro-batches, gradient clipping
+    cfg = r.train
+    loss_fn = torch.compile(model.loss) if cfg.compile else model.loss  # compiled in the untimed warm-up step
+    micro = max(1, min(cfg.micro_batches, B))
+
     def step():
-        loss = model.loss(batch)["loss"]
-        opt.zero_grad()
-        loss.backward()
+        opt.zero_grad(set_to_none=True)
+        for part in batch.split(math.ceil(B / micro)):
+            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                loss = loss_fn(part)["loss"] * (part.batch_size[0] / B)
+            loss.backward()
+        if cfg.grad_clip_norm:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
         opt.step()
         if ema is not None:
             ema.update(model)
@@ -123,7 +133,8 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
 
 
 def baseline_of(exp):
-    """The eager DP3 baseline of a recipe: the same parts and sizes, world model disabled."""
+    """The DP3 baseline of a recipe: the same parts, sizes and code paths (the CPU fast paths included), world
+    model disabled. ``benchmarks/train_step.py`` also times both with the fast paths off (its "eager" columns)."""
     from ddp.experiment import Experiment
     from ddp.recipe import apply_overrides
 
@@ -141,9 +152,9 @@ def compare(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", tra
     baseline / recipe for throughput rows (``*_per_s``)."""
     base_exp = baseline_of(exp)
     mine_runs, base_runs = [], []
-    for _ in range(max(1, rounds)):
-        mine_runs.append(bench(exp, repeats=repeats, warmup=warmup, device=device, train_steps=train_steps))
-        base_runs.append(bench(base_exp, repeats=repeats, warmup=warmup, device=device, train_steps=train_steps))
+    for i in range(max(1, rounds)):  # the order alternates too: neither always runs first (a cold cache, a warm one)
+        for which, runs in ((exp, mine_runs), (base_exp, base_runs))[:: 1 if i % 2 == 0 else -1]:
+            runs.append(bench(which, repeats=repeats, warmup=warmup, device=device, train_steps=train_steps))
     mine = {k: statistics.median(r[k] for r in mine_runs) for k in mine_runs[0]}
     base = {k: statistics.median(r[k] for r in base_runs) for k in base_runs[0]}
     rows = {}

@@ -584,9 +584,10 @@ def test_compare_alternates_rounds_and_takes_their_medians(monkeypatch):
     monkeypatch.setattr(bench_mod, "bench", fake_bench)
     monkeypatch.setattr(bench_mod, "baseline_of", lambda exp: "base")
     rows = bench_mod.compare("ddp", rounds=3)
-    assert calls == ["ddp", "base"] * 3  # interleaved, not all of one then the other
+    # interleaved, not all of one then the other, and neither always first
+    assert calls == ["ddp", "base", "base", "ddp", "ddp", "base"]
     mine, base, ratio = rows["obs_to_action_ms"]
-    assert (mine, base, ratio) == (30.0, 40.0, 0.75)  # medians of 10/30/50 and 20/40/60
+    assert (mine, base) == (40.0, 30.0) and ratio == pytest.approx(4 / 3)  # medians of 10/40/50 and 20/30/60
     mine, base, ratio = rows["train_samples_per_s"]
     assert ratio == pytest.approx(base / mine)  # a throughput's cost ratio: baseline / recipe
 
@@ -697,3 +698,23 @@ def test_cli_bench_times_a_target_table_step_and_its_refresh(tmp_path, capsys):
     rows = {line.split()[0]: line.split()[1:] for line in capsys.readouterr().out.strip().splitlines()[2:]}
     assert float(rows["train_step_ms"][0]) > 0 and float(rows["train_step_ms"][1]) > 0  # and the DP3 baseline's
     assert float(rows["target_refresh_ms_per_1k_frames"][0]) > 0 and rows["target_refresh_ms_per_1k_frames"][1] == "-"
+
+
+def test_bench_times_the_trainers_step_as_the_recipe_sets_it():
+    """ddp bench's train step ran model.loss on the whole batch whatever train.micro_batches and
+    train.autocast_bf16 said: it times the trainer's step (micro-batches, bf16 autocast, clipping) now."""
+    from ddp.bench import bench
+
+    recipe = copy.deepcopy(TINY)
+    recipe["train"].update(micro_batches=2, autocast_bf16=True, grad_clip_norm=1.0)
+    exp = build(recipe)
+    seen, loss = [], exp.model.loss
+
+    def recorded(batch, generator=None):
+        seen.append((batch.batch_size[0], torch.is_autocast_enabled("cpu")))
+        return loss(batch, generator=generator)
+
+    exp.model.loss = recorded
+    out = bench(exp, repeats=1, warmup=0, train_steps=1)
+    assert out["train_step_ms"] > 0
+    assert seen and all(s == (recipe["train"]["batch_size"] // 2, True) for s in seen), seen
