@@ -133,7 +133,9 @@ class Recovery(Protocol):
 
 
 class Trigger(Protocol):
-    """When a subtask has ended."""
+    """When a subtask has ended. ``fired`` may take an optional keyword ``state``: then the controller passes a
+    dict of its own per environment, empty when the subtask starts, for a trigger that needs memory (an edge
+    rather than a level); it is called every cycle of the subtask, from its first (``subtask_chunks`` 0)."""
 
     def fired(self, obs, chunk_index: int, subtask_chunks: int) -> bool: ...
 

@@ -52,8 +52,9 @@ latents and the hold chunk), so the next cycle has a D_R-I and can imagine.
 
 from __future__ import annotations
 
+import inspect
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from tensordict import TensorDictBase
@@ -98,6 +99,7 @@ class EnvState:
     last_shift: torch.Tensor | None = None  # the shift requested in that cycle
     subtask: int = 0
     subtask_start: int = 0
+    trigger_state: dict = field(default_factory=dict)  # the current subtask's trigger's memory (fired(state=))
     # resume_after_recovery: the tracked offsets when the controller returned to reality with displaced
     # objects no subtask targets left where they are; only a displacement beyond them re-enters OOD
     accepted: torch.Tensor | None = None
@@ -105,6 +107,15 @@ class EnvState:
     key: int | None = None  # the episode's random key (ddp.rng.mix of the controller's seed and the episode's)
     rng: torch.Generator | None = None  # the policy's sampling noise, this episode's stream
     forecast_rng: torch.Generator | None = None  # the world model's forecast noise, this episode's stream
+
+
+def _takes_state(trigger) -> bool:
+    """Whether ``trigger.fired`` takes the optional ``state`` keyword (see :class:`ddp.contracts.Trigger`)."""
+    try:
+        params = inspect.signature(trigger.fired).parameters
+    except (TypeError, ValueError):
+        return False
+    return "state" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
 
 
 class DDPController(KeyedModule):
@@ -335,6 +346,8 @@ class DDPController(KeyedModule):
             return False
         if isinstance(trig, tuple):  # a recovery at a fixed chunk (oracle snap-back): once per episode
             return chunk >= trig[1] and s.subtask_start < trig[1] and s.subtask < len(self.subtasks)
+        if _takes_state(trig):  # a trigger with memory: its own per environment, empty when a subtask starts
+            return trig.fired(obs, chunk, chunk - s.subtask_start, state=s.trigger_state)
         return trig.fired(obs, chunk, chunk - s.subtask_start)
 
     def _imagine(self, history: torch.Tensor, actions: torch.Tensor,
@@ -530,7 +543,7 @@ class DDPController(KeyedModule):
                 s.recovered |= recovered
                 if bool(recovered.any()):
                     s.recheck_after = chunk_index[b]  # re-evaluate D_R-I once the shift is observed
-            s.subtask, s.subtask_start = s.subtask + 1, chunk_index[b]
+            s.subtask, s.subtask_start, s.trigger_state = s.subtask + 1, chunk_index[b], {}
 
         # 1. OOD detection & tracking
         ood_now = self.detector(td).get(self.detector.key("ood")).reshape(B).tolist()

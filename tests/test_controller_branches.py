@@ -213,6 +213,31 @@ def test_gripper_closure_trigger_ends_the_subtask_when_the_fingers_close(tiny_re
     assert all(s == [0.0] * 3 for i, s in enumerate(shifts(r)) if i != 2)
 
 
+def test_gripper_closure_require_open_ends_a_second_grasp_subtask_only_on_its_own_closing(tiny_recipe):
+    """Level-triggered, a second gripper subtask that starts while the first object is held ends one chunk
+    later; with require_open it waits for the fingers to open and close again (the controller keeps the
+    trigger's per-subtask memory)."""
+    from ddp.triggers.gripper_closure import GripperClosureConfig, GripperClosureTrigger
+
+    def subtasks(**options):
+        return [{"target": 0, "trigger": {"name": "gripper_closure", **options}},
+                {"target": None, "trigger": {"name": "gripper_closure", **options}}, {"target": None}]
+
+    level = make_exp(tiny_recipe, subtasks=subtasks())
+    r = rollout(level, CloseGripperFrom(level.make_controller(), chunk=2))
+    assert r["ddp", "subtask"].tolist() == [0, 0, 0, 1, 2, 2, 2, 2]  # ended at once: still holding
+    edge = make_exp(tiny_recipe, subtasks=subtasks(require_open=True))
+    r = rollout(edge, CloseGripperFrom(edge.make_controller(), chunk=2))
+    # the first subtask saw the fingers open (chunks 0-2), then closing; the second never sees them reopen
+    assert r["ddp", "subtask"].tolist() == [0, 0, 0, 1, 1, 1, 1, 1]
+    # the trigger alone: closed from the start reads nothing; open, then closed, fires
+    trig, state = GripperClosureTrigger(GripperClosureConfig(require_open=True)), {}
+    assert not trig.fired(_fingers([0.03]), 4, 0, state=state) and not trig.fired(_fingers([0.03]), 5, 1, state=state)
+    assert not trig.fired(_fingers([0.08]), 6, 2, state=state) and trig.fired(_fingers([0.03]), 7, 3, state=state)
+    with pytest.raises(ValueError, match="require_open needs the controller's per-subtask state"):
+        trig.fired(_fingers([0.03]), 7, 3)
+
+
 def _fingers(widths):
     """agent_pos frames [M, 9] (DP3's layout) whose finger distance is each of ``widths``."""
     pos = torch.zeros(len(widths), 9)

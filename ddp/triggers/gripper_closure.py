@@ -23,6 +23,10 @@ class GripperClosureConfig:
     # fingers closer than this hold nothing (closed on air: MetaWorld's 0.030 m against 0.045-0.056 m round its
     # objects): no fire, the subtask goes on. None: any closure counts (the paper's trigger)
     empty_below: float | None = None
+    # fire only on a closing seen in this subtask: the fingers must first read open (width at or above
+    # settled_below, else width_below) in one of its cycles, so a subtask that starts while the previous one's
+    # object is still held does not end at once. False: the paper's trigger (the width alone)
+    require_open: bool = False
 
     def __post_init__(self):
         for name in ("width_below", "settled_below", "empty_below"):
@@ -48,7 +52,8 @@ class GripperClosureConfig:
 class GripperClosureTrigger:
     """Fires when the distance between the finger positions in ``agent_pos`` drops below ``width_below``, or
     (with ``settled_below``) when they have stopped under ``settled_below``: closed on a wider object; with
-    ``empty_below``, not when they closed further than that (on nothing)."""
+    ``empty_below``, not when they closed further than that (on nothing); with ``require_open``, only after
+    the fingers read open in this subtask (an edge, not a level)."""
 
     def __init__(self, config: GripperClosureConfig):
         self.config = config
@@ -60,11 +65,19 @@ class GripperClosureTrigger:
                              f"{list(c.left)} / right {list(c.right)} need {max(c.left[1], c.right[1])}")
         return float((agent_pos[..., c.left[0] : c.left[1]] - agent_pos[..., c.right[0] : c.right[1]]).norm(dim=-1))
 
-    def fired(self, obs, chunk_index: int, subtask_chunks: int) -> bool:
-        if subtask_chunks < self.config.min_chunks:
-            return False
+    def fired(self, obs, chunk_index: int, subtask_chunks: int, state: dict | None = None) -> bool:
         c, agent_pos = self.config, obs["agent_pos"]
         width = self.width(agent_pos[-1])
+        if c.require_open:
+            if state is None:
+                raise ValueError("gripper_closure: require_open needs the controller's per-subtask state "
+                                 "(fired(..., state=))")
+            if width >= (c.settled_below if c.settled_below is not None else c.width_below):
+                state["opened"] = True
+            if not state.get("opened"):
+                return False  # still closed from before this subtask: no closing seen yet
+        if subtask_chunks < c.min_chunks:
+            return False
         if c.empty_below is not None and width < c.empty_below:
             return False  # closed on nothing: the grasp missed, the subtask is not done
         if width < c.width_below:
