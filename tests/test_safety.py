@@ -223,3 +223,43 @@ def test_envs_refuse_nonfinite_actions_and_shifts():
     td["ee_shift"] = torch.tensor([math.nan, 0.0, 0.0])
     with pytest.raises(NonFiniteError, match="end-effector shift"):
         env.step(td)
+
+
+def test_chunked_env_reset_plays_the_seed_it_is_given_and_refuses_other_chunks():
+    """reset(seed=7) played the next episode (the seed was dropped); a chunk of another length ran that many
+    steps as one chunk (the render schedule then fed stale clouds)."""
+    cfg = SyntheticReachEnvConfig(num_points=64, table_points=64, cube_points=48, gripper_points=16)
+    env = ChunkedEnv(SyntheticReachEnv(cfg, seed=0), action_steps=8, obs_steps=2)
+    direct = ChunkedEnv(SyntheticReachEnv(cfg, seed=7), action_steps=8, obs_steps=2)
+    a, b = env.reset(seed=7), direct.reset()
+    assert int(a["episode_seed"]) == 7 and torch.equal(a["point_cloud"], b["point_cloud"])
+    with pytest.raises(TypeError, match="chunked env: reset\\(\\) takes seed=; got options"):
+        env.reset(options=1)
+    for steps in (3, 16):
+        td = env.reset()
+        td.set("action", torch.zeros(steps, 4))
+        with pytest.raises(ValueError, match=f"an action chunk holds 8 actions; got shape \\[{steps}, 4\\]"):
+            env.step(td)
+
+
+def test_env_schedules_the_episode_never_observes_and_negative_seeds_are_refused():
+    base = dict(num_points=64, table_points=64, cube_points=48, gripper_points=16, max_episode_steps=48)
+    with pytest.raises(ValueError, match="displacement_chunk 5 is first observed at step 48.*max_episode_steps > 48"):
+        SyntheticReachEnvConfig(**base, displacement=True, displacement_chunk=5)
+    SyntheticReachEnvConfig(**base, displacement=True, displacement_chunk=4)  # observed at 40, a chunk acts on it
+    with pytest.raises(ValueError, match="occlusion_chunk 5 is first observed at step 48.*max_episode_steps > 48"):
+        SyntheticReachEnvConfig(**base, occlusion_chunk=5)
+    env = SyntheticReachEnv(SyntheticReachEnvConfig(**base), seed=0)
+    with pytest.raises(ValueError, match="episode seeds must be >= 0; got -5"):  # -5 replayed episode 5
+        env.reset(seed=-5)
+
+
+def test_the_base_render_schedule_works_without_obs_every():
+    """An adapter keeping the base _render_due on a config without obs_every / obs_history (the shared
+    ObservationOptions has neither) failed at its first step: it renders every frame."""
+    from ddp.envs.base import PointCloudEnv
+
+    env = SyntheticReachEnv(SyntheticReachEnvConfig(num_points=64, table_points=64, cube_points=48,
+                                                    gripper_points=16), seed=0)
+    assert not hasattr(env.config, "obs_every")
+    assert all(PointCloudEnv._render_due(env, t) for t in range(10))

@@ -127,6 +127,12 @@ class ObservationOptions:
         check_choices(self)
         if self.occlusion_chunk is not None and not self.render_point_cloud:
             raise ValueError("occlusion_chunk needs render_point_cloud=True (it corrupts the point cloud)")
+        if self.occlusion_chunk is not None and self.max_episode_steps is not None:
+            shown = (self.occlusion_chunk + 1) * self.chunk_len  # the first observation it blinds
+            if shown >= self.max_episode_steps:  # an "occlusion" protocol would measure an unoccluded episode
+                raise ValueError(f"occlusion_chunk {self.occlusion_chunk} is first observed at step {shown} ("
+                                 f"{self.chunk_len} actions per chunk): with max_episode_steps "
+                                 f"{self.max_episode_steps} no chunk acts on it (it needs max_episode_steps > {shown})")
 
     def occlusion_schedule(self) -> Occlusion | None:
         """The camera occlusion these options ask for (None: none)."""
@@ -222,7 +228,7 @@ class PointCloudEnv(EpisodeSeeds, EnvBase):
 
     def _episode_rng(self, seed: int) -> np.random.Generator:
         """The episode's random stream (occlusion noise, point sampling)."""
-        return np.random.default_rng(abs(seed))
+        return np.random.default_rng(seed)
 
     def _before_action(self, t: int) -> None:
         """Disturbances scheduled before action ``t`` (none by default)."""
@@ -243,7 +249,10 @@ class PointCloudEnv(EpisodeSeeds, EnvBase):
             self._render_extras()
 
     def _render_due(self, t: int) -> bool:
-        return render_due(t, self.config.obs_every, self.config.obs_history)
+        """Whether the frame after ``t`` actions is rendered: with ``obs_every`` / ``obs_history`` on the config
+        (ChunkedEnv sets them), only the frames the policy reads; without them, every frame."""
+        cfg = self.config
+        return render_due(t, getattr(cfg, "obs_every", 1), getattr(cfg, "obs_history", 1))
 
     def _render_extras(self) -> None:
         """Render observation keys beside the cloud (when a frame is due)."""

@@ -147,8 +147,11 @@ class ChunkedEnv(EnvBase):
         out.set("ee_shift_applied", shift.to(self.device))
         return out
 
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        first = self._chunks.reset()
+    def _reset(self, tensordict: TensorDictBase | None = None, seed: int | None = None, **kwargs) -> TensorDictBase:
+        if kwargs:
+            raise TypeError(f"chunked env: reset() takes seed=; got {', '.join(sorted(kwargs))}")
+        # reset(seed=s) plays episode s, as the base env's does (it was dropped: another episode, mislabelled)
+        first = self._chunks.reset() if seed is None else self._chunks.reset(seed=seed)
         self._chunk = 0
         self._success = False
         if self.recorder is not None:
@@ -169,7 +172,11 @@ class ChunkedEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shift = tensordict.get("ee_shift", None)
         # the whole chunk is checked before any of it runs: no half-executed chunk ends in a refusal
-        require_finite("action chunk", tensordict.get("action"), "chunked env")
+        action = tensordict.get("action")
+        if action.shape[-2] != self.action_steps:  # another length runs that many steps as one chunk
+            raise ValueError(f"chunked env: an action chunk holds {self.action_steps} actions; got shape "
+                             f"{list(action.shape)}")
+        require_finite("action chunk", action, "chunked env")
         if shift is not None:
             require_finite("end-effector shift", shift, "chunked env")
         applied = None

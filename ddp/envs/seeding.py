@@ -25,6 +25,8 @@ class EpisodeSeeds:
     def _episode_seed(self, seed: int | None) -> int:
         """The seed of the episode a reset starts: ``seed`` if given, else the next one; then count on."""
         seed = self._next_seed if seed is None else int(seed)
+        if seed < 0:  # the envs' streams read |seed|: -5 replayed episode 5
+            raise ValueError(f"episode seeds must be >= 0; got {seed}")
         self._next_seed = seed + 1
         self._seed = seed
         return seed

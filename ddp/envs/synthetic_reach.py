@@ -71,6 +71,11 @@ class SyntheticReachEnvConfig(ObservationOptions):
         self.check_observation_options(positive=("table_points", "cube_points", "gripper_points"))
         if self.displacement_chunk < 0:
             raise ValueError(f"displacement_chunk must be >= 0; got {self.displacement_chunk}")
+        shown = (self.displacement_chunk + 1) * self.chunk_len  # the first observation showing the move
+        if self.displacement and shown >= self.max_episode_steps:  # as MetaWorld's: the move must be acted on
+            raise ValueError(f"displacement_chunk {self.displacement_chunk} is first observed at step {shown}: with "
+                             f"max_episode_steps {self.max_episode_steps} no chunk acts after the move (it needs "
+                             f"max_episode_steps > {shown})")
 
 
 def _box_surface(rng: np.random.Generator, center: np.ndarray, half: np.ndarray, n: int) -> np.ndarray:
