@@ -535,7 +535,7 @@ class DDPController(KeyedModule):
                 followed = torch.where(s.tracked[:, None], s.followed, s.offsets)  # tracked: what was executed
                 shift, recovered = self.recovery.recover(followed, s.displaced & ~s.recovered, target)
                 if not bool(torch.isfinite(torch.as_tensor(shift, dtype=torch.float32)).all()):  # a plugin's fault
-                    raise NonFiniteError(f"controller: environment {b}, chunk {chunk_index[b]}: recovery "
+                    raise NonFiniteError(f"controller: environment {b}, chunk {int(chunk_index[b])}: recovery "
                                          f"'{type(self.recovery).__name__}' returned a non-finite shift "
                                          f"{torch.as_tensor(shift).tolist()}; no shift is sent")
                 if target is not None and bool(s.tracked[target]):  # a^rec_j = -Delta p_Cj undoes a^track_j

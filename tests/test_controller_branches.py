@@ -641,5 +641,5 @@ def test_a_recovery_plugin_returning_nan_is_one_line_before_any_shift(tiny_recip
         return shift * float("nan"), recovered
 
     ctrl.recovery.recover = nan_recover
-    with pytest.raises(NonFiniteError, match="recovery '.*' returned a non-finite shift"):
+    with pytest.raises(NonFiniteError, match=r"environment 0, chunk \d+: recovery '.*' returned a non-finite shift"):
         rollout(exp, ctrl)
