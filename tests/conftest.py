@@ -97,7 +97,7 @@ def suite_file(tmp_path, monkeypatch):
     """A tiny suite: 2 tasks x 2 methods (DDP, DP3 by overlay) x 2 seeds, 2 training steps, 1 short episode."""
     monkeypatch.chdir(tmp_path)
     recipe = copy.deepcopy(TINY)
-    recipe["env"].update(displacement_chunk=1, displacement_delta=[0.2, 0.0, 0.0])
+    recipe["env"].update(displacement_chunk=0, displacement_delta=[0.2, 0.0, 0.0])
     recipe["train"].update(max_steps=2, epochs=1)
     recipe["eval"] = {"episodes": 1, "max_steps": 16}
     recipe["controller"] = {"detector": {"name": "oracle"}, "tracker": {"name": "oracle"},

@@ -578,6 +578,11 @@ def test_reference_rows_sit_under_their_rows_and_average_the_same_tasks(tmp_path
     exact = load_reference({"values": {"ddp": {"id": {"mw": {"a": 90, "b": 70, "avg": 81}}}}}, source="s")
     write_suite_report(results, tmp_path / "exact", "t", reference=exact)
     assert "| ddp | id (reference) | 90 | 70 | - | 81 | - |" in (tmp_path / "exact" / "table.md").read_text()
+    # a mean over part of the reference's tasks reads to a tenth of a point (it printed 0.1429, 22.14)
+    for a, b, avg in ((0, 0.2857, "0.1"), (23, 21.29, "22.1")):
+        part = load_reference({"values": {"ddp": {"id": {"mw": {"a": a, "b": b, "c": 0}}}}}, source="s")
+        write_suite_report(results, tmp_path / f"part{a}", "t", reference=part)
+        assert f"| ddp | id (reference) | {a} | {b} | - | {avg} | - |" in (tmp_path / f"part{a}" / "table.md").read_text()
     empty = load_reference({"values": {"ddp": None}}, source="s")  # nothing for a method: no rows, no crash
     write_suite_report(results, tmp_path / "empty", "t", reference=empty)
     for bad in ({"values": {"ddp": {"id": {"mw": {"a": 130}}}}}, {"label": "p"}, "missing.yaml",

@@ -234,7 +234,7 @@ def test_tau_is_calibrated_on_id_rollouts_of_the_base_policy(tiny_recipe, tmp_pa
     from ddp.detectors.never import NeverDetector
     from ddp.protocols.base import get_protocol
 
-    tiny_recipe["env"]["max_episode_steps"] = 16
+    tiny_recipe["env"]["max_episode_steps"] = 24  # the displacement at chunk 1 shows at step 16: a chunk acts after it
     tiny_recipe["eval"] = {"env": {"cube_x": [-0.05, 0.05]}, "calibration_episodes": 3, "seed": 500}
     tiny_recipe["controller"] = {"detector": {"name": "discrepancy", "tau": None, "alpha": 0.5,
                                               "threshold_on": "all"},
