@@ -13,6 +13,7 @@ serve both are in both) in alternating rounds in this process, and gives the cos
 
 from __future__ import annotations
 
+import copy
 import math
 import statistics
 import time
@@ -84,7 +85,9 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     out["controller_latency_ms"] = _timed(lambda: live(td.clone()), repeats=repeats, warmup=warmup, device=dev,
                                           before=live.wait_forecast)
     live.close()
-    # training throughput on random windows of the recipe's shapes
+    # training throughput on random windows of the recipe's shapes, on a copy: the optimiser steps on noise and
+    # the batch's target table must not reach the caller's model (bench(exp) on a loaded checkpoint, then eval)
+    model = copy.deepcopy(model)
     model.train()
     B = r.train.batch_size
     T = model.window
@@ -102,8 +105,11 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
         frames = B * T
         batch.set(FRAME_INDEX, torch.arange(frames, device=dev).reshape(B, T))
         flat_pc, flat_pos = batch["point_cloud"].reshape(frames, P, -1), batch["agent_pos"].reshape(frames, D)
-        refresh_ms = _timed(lambda: model.refresh_target_table(flat_pc, flat_pos), repeats=train_steps, warmup=1,
-                            device=dev)
+        def refresh():  # as the trainer refreshes it: under bf16 autocast where the recipe trains so
+            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=r.train.autocast_bf16):
+                model.refresh_target_table(flat_pc, flat_pos)
+
+        refresh_ms = _timed(refresh, repeats=train_steps, warmup=1, device=dev)
         out["target_refresh_ms_per_1k_frames"] = refresh_ms * 1000.0 / frames
     opt = make_optimizer(model, r.train)
     ema = EMA(model, r.ema) if r.ema.enabled else None

@@ -210,13 +210,18 @@ def _check_env(exp, env: dict, protocols) -> None:
 
 def _rollouts(exp, protocol: str, *, episodes: int, seed: int, env: dict, progress: bool, num_envs: int,
               parallel: bool) -> list[dict]:
-    from ddp.eval_runner import env_overrides, rollout_episodes
+    from ddp.eval_runner import env_overrides, evaluation_blocks, rollout_episodes
     from ddp.protocols.base import get_protocol
 
     ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
     over = env_overrides(exp, get_protocol(protocol), exp.recipe.eval.max_steps, extra=env)
-    return rollout_episodes(exp, ctrl, episodes=episodes, seed=seed, overrides=over, desc=f"{protocol} rollouts",
-                            progress=progress, num_envs=num_envs, parallel=parallel, record_latents=True)
+    out = []
+    # past one draw of the env's initial states (MetaWorld: 50), the next draw, as ddp eval does: seeds 50
+    # apart started from one state, so the ID and disturbed sets held the same layouts twice
+    for block, first, n in evaluation_blocks(exp, over, seed, episodes):
+        out += rollout_episodes(exp, ctrl, episodes=n, seed=first, overrides=block, desc=f"{protocol} rollouts",
+                                progress=progress, num_envs=num_envs, parallel=parallel, record_latents=True)
+    return out
 
 
 def _statistics(episodes: list[dict], spec, cal, point_dims: int) -> list[list[float]]:

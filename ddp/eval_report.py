@@ -23,6 +23,8 @@ def protocol_result(episodes: list[dict], *, seconds: float, thresholds: dict, v
         "detector": detector,
         "tau": thresholds.get("tau"),
         "alpha": thresholds.get("alpha"),
+        # how the threshold was set (the per-chunk reference itself stays beside the checkpoint)
+        "calibration": {k: thresholds[k] for k in CALIBRATION_FIELDS if k in thresholds} or None,
         "per_episode": episodes,
     }
     info = task_info_mean(episodes)
@@ -33,6 +35,10 @@ def protocol_result(episodes: list[dict], *, seconds: float, thresholds: dict, v
     if videos is not None:
         out["videos"] = videos
     return out
+
+
+#: the calibration's fields results.json keeps
+CALIBRATION_FIELDS = ("fit_episodes", "threshold_episodes", "threshold_on", "fit_on", "chunk_fallback", "median")
 
 
 def task_info_mean(episodes: list[dict]) -> dict[str, float]:
@@ -52,9 +58,12 @@ def write_report(report: dict, out_dir: Path) -> list[Path]:
     """results.json (strict JSON: NaN -> null), table.md and the plots; returns the plot paths."""
     from ddp.plots import plot_report
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "results.json").write_text(results_json.dumps(report))
-    (out_dir / "table.md").write_text(markdown_table({report["recipe"]: report}) + detection_table(report))
+    from ddp.atomic_file import atomic_write
+
+    out_dir.mkdir(parents=True, exist_ok=True)  # written whole or not at all (a kill mid-write left half a JSON)
+    atomic_write(out_dir / "results.json", lambda f: f.write(results_json.dumps(report)), binary=False)
+    table = markdown_table({report["recipe"]: report}) + detection_table(report)
+    atomic_write(out_dir / "table.md", lambda f: f.write(table), binary=False)
     return plot_report(report, out_dir)
 
 

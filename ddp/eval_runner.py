@@ -156,7 +156,9 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
 
     def factory(i: int) -> ChunkedEnvFactory:
         first = starts[i]
-        vid = None if video is None else dataclasses.replace(video, first_seed=first)
+        # at most the env's share: past it the env runs idle episodes (the collector's batches), not evaluated ones
+        vid = None if video is None else dataclasses.replace(video, first_seed=first,
+                                                            episodes=min(video.episodes, quota[i]))
         return env_factory(exp, first, overrides, vid)
 
     if num_envs == 1:

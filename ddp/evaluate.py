@@ -59,10 +59,17 @@ def settle(exp, protocols, *, episodes, output_dir, num_envs, seed, video, paral
         check_protocols(protocols, source="--protocols")
         if not protocols:
             raise RecipeError("no protocol given", source="--protocols")
+    if len(set(protocols)) < len(protocols):
+        twice = next(p for p in protocols if protocols.count(p) > 1)
+        raise RecipeError(f"protocol {twice} is named twice", **named)
     for name in protocols:
-        if get_protocol(name).imagine and not exp.model.has_world_model:
+        protocol = get_protocol(name)
+        if protocol.imagine and not exp.model.has_world_model:
             raise RecipeError(f"protocol {name} acts on imagined latents: it needs a world model "
                               "(world_model.enabled is false)", **named)
+        if getattr(protocol, "needs_world_model", False) and not exp.model.has_world_model:
+            raise RecipeError(f"protocol {name} is DDP's (forecasts, D_R-I, imagination): it needs a world model "
+                              "(world_model.enabled is false; the DP3 ablation's tracking is ood_tracking)", **named)
     episodes = cfg.episodes if episodes is None else episodes
     num_envs = cfg.num_envs if num_envs is None else num_envs
     for flag, value in (("--episodes", episodes), ("--num-envs", num_envs)):
@@ -89,9 +96,11 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     s = settle(exp, protocols, episodes=episodes, output_dir=output_dir, num_envs=num_envs, seed=seed, video=video,
                parallel=parallel)
     cfg = exp.recipe.eval
-    exp.model.to(resolve_device(cfg.device, source=exp.source, key="eval.device"))  # envs stay on the CPU
+    device = resolve_device(cfg.device, source=exp.source, key="eval.device")
+    exp.model.to(device)  # envs stay on the CPU
     runs = dict(num_envs=s.num_envs, progress=progress, parallel=s.parallel)
-    report = {"recipe": exp.recipe.name, "episodes": s.episodes, "seed": s.seed, "protocols": {}}
+    report = {"recipe": exp.recipe.name, "episodes": s.episodes, "seed": s.seed, "protocols": {},
+              **provenance(exp, s, device)}
     calibrations: dict[str, dict] = {}  # per detector section: calibrated once, on ID rollouts
     # every protocol's controller is built before any rollout: a part the env cannot serve (e.g. an oracle on
     # a real robot) is refused before the first episode runs
@@ -99,8 +108,10 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
     for name in s.protocols:
         protocol = get_protocol(name)
         overrides = env_overrides(exp, protocol, cfg.max_steps)
-        # where the env's own oracle tracks, the controller does not track too
-        tracker = protocol.tracker and not overrides.get("oracle_tracking", False)
+        # where the env's own oracle tracks (this protocol's overrides, else the recipe's env section), the
+        # controller does not track too
+        env_tracks = overrides.get("oracle_tracking", (exp.resolved.get("env") or {}).get("oracle_tracking", False))
+        tracker = protocol.tracker and not env_tracks
         plan.append((name, protocol, overrides,
                      exp.make_controller(detector=protocol.detector, imagine=protocol.imagine, tracker=tracker)))
     for name, protocol, overrides, ctrl in plan:
@@ -114,20 +125,24 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
         if isinstance(ctrl.detector, Calibratable) and ctrl.detector.needs_calibration:
             key = results_json.dumps(section)
             if key not in calibrations:
-                calibrations[key] = _calibration(exp, ctrl.detector, section, seed=s.seed + 100_000, runs=runs)
+                calibrations[key] = _calibration(exp, ctrl.detector, section, seed=report["calibration_seed"],
+                                                 runs=runs)
             ctrl.detector.load_calibration(calibrations[key])
         vid = None
         if s.video:
             vid = VideoSettings(str(s.out_dir / "videos" / name), episodes=cfg.video_episodes, size=cfg.video_size,
                                 fps=cfg.video_fps, camera=cfg.video_camera)
-        t0 = time.perf_counter()
+        t0, started = time.perf_counter(), time.time()
         episodes_run = []
         for i, (block, first, n) in enumerate(evaluation_blocks(exp, overrides, s.seed, s.episodes)):
             episodes_run += rollout_episodes(exp, ctrl, episodes=n, seed=first, overrides=block, desc=name,
                                              video=vid if i == 0 else None, **runs)
         videos = None
         if vid is not None:
-            videos = [str(p) for p in sorted(Path(vid.directory).glob("seed*")) if p.suffix in (".mp4", ".gif")]
+            # this evaluation's own: an earlier run's files in the same folder (other seeds, more episodes) are not
+            names = {f"{vid.prefix}{e['seed']}" for e in episodes_run}
+            videos = [str(p) for p in sorted(Path(vid.directory).glob(f"{vid.prefix}*"))
+                      if p.suffix in (".mp4", ".gif") and p.stem in names and p.stat().st_mtime >= started - 1]
         thresholds = ctrl.detector.calibration() if isinstance(ctrl.detector, Calibratable) else {}
         detection = None
         if section.get("name") not in NOT_DECIDING:
@@ -137,6 +152,23 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
                                                     detector=section)
     report["plots"] = [str(p) for p in write_report(report, s.out_dir)]
     return report
+
+
+def provenance(exp, s: EvalSettings, device) -> dict:
+    """What reproduces an evaluation beside its seeds: the code, the weights, the recipe as run (every --set
+    and Python change) and its parts with their defaults, how episodes were batched and where the model ran,
+    the detector calibration's seed."""
+    from ddp.calibration_file import model_digest
+    from ddp.config import to_dict
+    from ddp.suite.provenance import code_version
+
+    weights = None
+    if exp.checkpoint_path is not None:
+        weights = {"path": str(exp.checkpoint_path), "weights": exp.checkpoint_weights}
+    return {"num_envs": s.num_envs, "parallel": s.parallel, "device": str(device),
+            "calibration_seed": s.seed + 100_000, "checkpoint": weights, "model_digest": model_digest(exp.model),
+            "code": code_version(), "settings": to_dict(exp.recipe),  # as run: changes made in Python included
+            "parts": {key: part.as_dict() for key, part in exp.parts.items() if part is not None}}  # with defaults
 
 
 #: detectors that do not decide OOD from observations (no detection metrics for their protocols)

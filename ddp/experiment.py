@@ -38,6 +38,7 @@ class Experiment:
             raise RecipeError(err.reason, source=err.source or source, key=err.key) from None
         self._episodes = None
         self.checkpoint_path: Path | None = None  # set by load_checkpoint
+        self.checkpoint_weights: str | None = None  # "ema" or "raw", set by load_checkpoint
 
     def __repr__(self) -> str:
         return f"Experiment({self.recipe.name!r}, source={self.source!r})"
@@ -115,6 +116,7 @@ class Experiment:
             first = str(err).strip().splitlines()[0]
             raise CheckpointError(f"{path}: weights do not fit this recipe's model: {first}") from None
         self.checkpoint_path = Path(path)  # a detector calibration is saved beside it
+        self.checkpoint_weights = "raw" if weights is state["model"] else "ema"  # what an evaluation reports
         return self
 
     def _check_simulator_truth(self, env_part, module, key: str) -> None:

@@ -369,11 +369,12 @@ class DDPController(KeyedModule):
     def _imagine_one_thread(self, history: torch.Tensor, actions: torch.Tensor, generators: list[torch.Generator]):
         """The forecast with torch's CPU ops single-threaded while it runs, on the background thread or inline.
 
-        torch's thread count is process-wide (libgomp's global setting for threads outside OpenMP). A
-        second multi-threaded OpenMP team in the process makes libgomp throttle its spinning for every
-        team: measured on 2 cores, the main thread's policy then ran 1.5-2.5x slower for the rest of the
-        process. With one thread here no second team exists; the count is restored when the forecast
-        ends, before the next cycle collects it (while it runs, the main thread executes the chunk). The
+        ``torch.set_num_threads`` sets the calling thread's OpenMP count (and the global default a thread takes
+        at its first torch call: a thread whose first torch op fell inside a forecast would keep 1; none in
+        ddp starts then). A second multi-threaded OpenMP team in the process makes libgomp throttle its
+        spinning for every team: measured on 2 cores, the main thread's policy then ran 1.5-2.5x slower for
+        the rest of the process. With one thread here no second team exists; the count is restored when the
+        forecast ends (while it runs, the main thread executes the chunk). The
         inline forecast runs single-threaded too: a CPU kernel's sums depend on how many threads split
         them, and the two paths must give the same forecast, bit for bit.
         """

@@ -64,7 +64,8 @@ class WorldModelConfig:
     # gradient (cheaper; the encoder then learns from L_WM only through the history latents)
     target_gradient: bool = True
     # beyond the paper (1.0: every sample): L_WM on the batch's first ceil(fraction * B) samples only (a
-    # random subset of a shuffled batch), so only their future frames are encoded and denoised; L_BC keeps all
+    # random subset of a shuffled batch; with train.micro_batches, of each micro-batch), so only their future
+    # frames are encoded and denoised; L_BC keeps all
     batch_fraction: float = 1.0
     # beyond the paper (0: off, the targets are encoded with every batch): with target_gradient false, the
     # future targets are looked up in a table of every training frame's latent, re-encoded by the current

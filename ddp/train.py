@@ -485,15 +485,16 @@ class Trainer:
                 batch.set(FRAME_INDEX, dataset.indices[part].to(self.device))
             # DDP all-reduces (averages over ranks) in the last backward of the step only
             sync = parallel is None or j == len(mine) - 1
-            with (contextlib.nullcontext() if sync else parallel.no_sync()), \
-                    torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
-                # the objective is the sum of the loss_* terms (TorchRL's convention)
-                if parallel is None:
-                    losses = loss_fn(batch, generator=noises[i])
-                    objective = sum(losses[k] for k in losses.keys() if k.startswith("loss_"))
-                else:
-                    objective, losses = parallel(batch, noises[i])
-                # the mean over the global batch, whatever share of it this rank holds
+            with contextlib.nullcontext() if sync else parallel.no_sync():
+                with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                    # the objective is the sum of the loss_* terms (TorchRL's convention)
+                    if parallel is None:
+                        losses = loss_fn(batch, generator=noises[i])
+                        objective = sum(losses[k] for k in losses.keys() if k.startswith("loss_"))
+                    else:
+                        objective, losses = parallel(batch, noises[i])
+                # the mean over the global batch, whatever share of it this rank holds; backward outside autocast
+                # (torch's advice: a custom backward would otherwise run its ops in bf16)
                 (objective * (ranks.world / cfg.micro_batches)).backward()
             for k in step_losses:
                 step_losses[k] += losses[k].detach().item() / len(mine)

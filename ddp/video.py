@@ -37,7 +37,8 @@ SHIFT_COLOUR = (40, 90, 220)
 
 @dataclass(frozen=True)
 class VideoSettings:
-    """Where and how ``ChunkedEnv`` records: the first ``episodes`` episodes of each env."""
+    """Where and how ``ChunkedEnv`` records: the first ``episodes`` episodes of each env (only episodes that end:
+    one cut short by a reset or by closing the env is not written)."""
 
     directory: str
     episodes: int = 2
@@ -171,15 +172,23 @@ class EpisodeRecorder:
         self.frames: list[np.ndarray] = []
         self.chunk_ends: dict[int, int] = {}  # chunk -> index of its last frame (the contact sheet's frames)
         self.episode = -1  # episodes started so far - 1
+        self.seed: int | None = None  # the current episode's seed (its file's name), when the env tells it
         self.written: list[Path] = []
 
     @property
     def recording(self) -> bool:
         return 0 <= self.episode < self.settings.episodes
 
-    def start_episode(self) -> None:
-        self.finish()
+    def start_episode(self, seed: int | None = None) -> None:
+        """A new episode (``seed``: its seed, the file's name; else ``first_seed`` + its number). An episode
+        that did not end (the env was reset before its last chunk) is dropped, not written."""
+        self.discard()
         self.episode += 1
+        self.seed = seed
+
+    def discard(self) -> None:
+        """Forget the current episode's frames without writing them (it did not end)."""
+        self.frames, self.chunk_ends = [], {}
 
     def add(self, frame: np.ndarray, label: ChunkLabel | None) -> None:
         if not self.recording:
@@ -197,7 +206,7 @@ class EpisodeRecorder:
             self.frames, self.chunk_ends = [], {}
             return None
         s = self.settings
-        name = Path(s.directory) / f"{s.prefix}{s.first_seed + self.episode}"
+        name = Path(s.directory) / f"{s.prefix}{s.first_seed + self.episode if self.seed is None else self.seed}"
         path = write_video(self.frames, name, s.fps)
         ends = [self.chunk_ends[c] for c in sorted(self.chunk_ends)] or [len(self.frames) - 1]
         contact_sheet([self.frames[i] for i in ends], name.with_name(f"{name.name}_sheet.png"))

@@ -11,7 +11,7 @@ from torchrl.envs.utils import check_env_specs
 from conftest import DELTA, displaced_exp, fit_normalizer
 from ddp import build
 from ddp.errors import RecipeError
-from ddp.calibration_file import calibration_path
+from ddp.calibration_file import calibration_path, model_digest
 from ddp.envs.chunked import ChunkedEnv
 from ddp.envs.synthetic_reach import SyntheticReachEnv, SyntheticReachEnvConfig
 from ddp.evaluate import make_chunked_env
@@ -164,6 +164,12 @@ def test_imagination_protocols_need_a_world_model_and_imagine_whatever_the_recip
     e.recipe.eval.protocols = ["id", "imagination_50"]
     with pytest.raises(RecipeError, match="eval.protocols: protocol imagination_50 acts on imagined latents"):
         e.evaluate(episodes=1, output_dir=tmp_path, progress=False)
+    # DDP's other conditions ran without one under DDP's name (ood_ddp_oracle was ood_tracking)
+    for name in ("id_ddp", "ood_ddp", "ood_ddp_oracle"):
+        with pytest.raises(RecipeError, match=f"--protocols: protocol {name} is DDP's .* it needs a world model"):
+            e.evaluate([name], episodes=1, output_dir=tmp_path, progress=False)
+    with pytest.raises(RecipeError, match="--protocols: protocol id is named twice"):
+        e.evaluate(["id", "ood_base", "id"], episodes=1, output_dir=tmp_path, progress=False)
 
 
 def test_discrepancy_needs_a_world_model(tiny_recipe):
@@ -199,6 +205,14 @@ def test_evaluate_writes_results_table_and_plots(exp, tmp_path):
         assert [e["seed"] for e in res["per_episode"]] == [1000, 1001]
     assert (tmp_path / "results.json").exists() and (tmp_path / "table.md").read_text().startswith("| method |")
     assert (tmp_path / "success.png").exists() and (tmp_path / "discrepancy_ood_ddp.png").exists()
+    # what reproduces it: batching, device, calibration seed, the weights' digest, the code, the resolved recipe
+    stored = json.loads((tmp_path / "results.json").read_text())
+    assert stored["num_envs"] == 1 and stored["parallel"] is False and stored["device"] == "cpu"
+    assert stored["calibration_seed"] == 1000 + 100_000 and stored["checkpoint"] is None
+    assert stored["model_digest"] == model_digest(exp.model) and stored["code"]["ddp"]
+    assert stored["settings"]["controller"]["forecast_every_cycle"] is True
+    assert stored["parts"]["controller.detector"]["name"] == exp.parts["controller.detector"].plugin.name
+    assert not list(tmp_path.glob(".*.tmp"))  # written atomically, nothing left beside
     first = rep["protocols"]["ood_ddp"]["per_episode"][0]
     assert first["mode"][2] == 1.0
     # each chunk's subtask and the controller's shifts: tracked when flagged (chunk 2), recovered at chunk 4
@@ -264,6 +278,47 @@ def test_evaluate_videos_and_parallel_envs_match_serial(exp, tmp_path):
     for key in ("seed", "success", "mode", "chunks"):
         got = [e[key] for e in parallel["protocols"]["ood_ddp"]["per_episode"]]
         assert got == [e[key] for e in serial["protocols"]["ood_ddp"]["per_episode"]], key
+
+
+def test_env_section_oracle_tracking_turns_the_controllers_tracker_off(exp, monkeypatch):
+    """A recipe whose env section sets oracle_tracking: the env tracks in ood_tracking and ood_ddp_oracle,
+    so the controller must not shift the end-effector too (it read only the protocol's overrides)."""
+    made = []
+
+    def record(**kwargs):
+        made.append(kwargs["tracker"])
+        raise KeyboardInterrupt  # stop before any rollout
+
+    exp.resolved["env"]["oracle_tracking"] = True
+    monkeypatch.setattr(exp, "make_controller", record)
+    with pytest.raises(KeyboardInterrupt):
+        exp.evaluate(["ood_tracking"], episodes=1, progress=False)
+    assert made == [False]
+    exp.resolved["env"]["oracle_tracking"] = False
+    with pytest.raises(KeyboardInterrupt):
+        exp.evaluate(["ood_tracking"], episodes=1, progress=False)
+    assert made == [False, True]
+
+
+def test_videos_are_the_evaluated_episodes_whole_whatever_num_envs(exp, tmp_path):
+    """An env whose share is smaller than eval.video_episodes, and the collector's reset after the last batch,
+    started recordings that were written as 1-frame videos over the next env's real ones (and listed seeds
+    that were never evaluated); a rerun into the same folder listed the earlier run's files."""
+    from PIL import Image
+
+    exp.recipe.eval.video_episodes = 2
+    exp.recipe.eval.video_size = 32
+    rep = exp.evaluate(["id"], episodes=3, num_envs=3, output_dir=tmp_path, progress=False, video=True)
+    videos = [Path(v) for v in rep["protocols"]["id"]["videos"]]
+    assert [v.stem for v in videos] == ["seed1000", "seed1001", "seed1002"]
+    folder = tmp_path / "videos" / "id"
+    assert sorted(p.stem for p in folder.iterdir() if p.suffix in (".mp4", ".gif")) == [v.stem for v in videos]
+    chunks = rep["protocols"]["id"]["per_episode"][0]["chunks"]
+    for v in videos:  # the contact sheet holds one tile per chunk: a whole episode, not its reset frame
+        sheet = Image.open(folder / f"{v.stem}_sheet.png")
+        assert sheet.width == min(chunks, 8) * 160, v.stem
+    again = exp.evaluate(["id"], episodes=1, seed=2000, output_dir=tmp_path, progress=False, video=True)
+    assert [Path(v).stem for v in again["protocols"]["id"]["videos"]] == ["seed2000"]
 
 
 def test_object_hidden_at_ood_entry_is_tracked_once_seen(exp):

@@ -572,3 +572,20 @@ def test_forecast_samples_give_a_mean_forecast_and_its_spread(tiny_recipe):
             [{k: v for k, v in e.items() if k != "latent_pred_std"} for e in eps])
     with pytest.raises(ValueError, match="alternative normalisations"):
         DiscrepancyConfig(whiten=True, spread=True)
+
+
+def test_detect_rollouts_take_the_next_draw_of_initial_states_past_one(tiny_recipe, monkeypatch):
+    """ddp detect's test episodes past one draw of the env's initial states (MetaWorld: 50) come from the next
+    draw, as ddp eval's do: seeds 50 apart started from one layout, twice in the ID and disturbed sets."""
+    from ddp import build
+    from ddp import detection, eval_runner
+
+    calls = []
+    monkeypatch.setattr(eval_runner, "evaluation_blocks",
+                        lambda exp, over, seed, episodes: [(over, seed, 3), ({**over, "draw": 1}, seed + 3, episodes - 3)])
+    monkeypatch.setattr(eval_runner, "rollout_episodes",
+                        lambda exp, ctrl, *, episodes, seed, overrides, **kw: calls.append(
+                            (seed, episodes, overrides.get("draw"))) or [{"seed": seed + i} for i in range(episodes)])
+    exp = build(tiny_recipe)
+    got = detection._rollouts(exp, "id", episodes=5, seed=10, env={}, progress=False, num_envs=1, parallel=False)
+    assert calls == [(10, 3, None), (13, 2, 1)] and [e["seed"] for e in got] == [10, 11, 12, 13, 14]

@@ -222,6 +222,18 @@ def test_world_model_batch_fraction_uses_only_the_first_samples_futures(tiny_rec
     assert pc.grad[:3, :2].abs().sum() > 0 and pc.grad[3:, :2].abs().sum() == 0  # L_WM's history conditioning too
 
 
+def test_world_model_batch_fraction_counts_samples_without_float_error(tiny_recipe):
+    """0.28 x 25 is 7.000000000000001 in floats: the ceiling took 8 samples where the option says 7."""
+    tiny_recipe["world_model"]["batch_fraction"] = 0.28
+    e = build(tiny_recipe)
+    fit_normalizer(e)
+    seen = []
+    predict = e.model.world_model_net.predict
+    e.model.world_model_net.predict = lambda x, t, *cond: seen.append(x.shape[0]) or predict(x, t, *cond)
+    e.model.loss(batch_of(e, batch_size=25), generator=torch.Generator().manual_seed(0))
+    assert seen == [7]
+
+
 def test_world_model_batch_fraction_is_validated(tiny_recipe):
     from ddp.errors import RecipeError
 

@@ -718,3 +718,18 @@ def test_bench_times_the_trainers_step_as_the_recipe_sets_it():
     out = bench(exp, repeats=1, warmup=0, train_steps=1)
     assert out["train_step_ms"] > 0
     assert seen and all(s == (recipe["train"]["batch_size"] // 2, True) for s in seen), seen
+
+
+def test_bench_leaves_the_callers_model_as_it_was():
+    """bench() ran its optimiser steps on random windows against exp.model itself (and left the batch's target
+    table on it): bench(exp) on a loaded checkpoint, then an evaluation, evaluated weights trained on noise."""
+    from ddp.bench import bench
+
+    recipe = copy.deepcopy(TINY)
+    recipe["world_model"].update(target_gradient=False, target_refresh_every=10)
+    exp = build(recipe)
+    before = {k: v.clone() for k, v in exp.model.state_dict().items()}
+    bench(exp, repeats=1, warmup=0, train_steps=1)
+    after = exp.model.state_dict()
+    assert before.keys() == after.keys() and all(torch.equal(before[k], after[k]) for k in before)
+    assert exp.model.target_table is None and not exp.model.training

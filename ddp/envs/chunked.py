@@ -155,7 +155,7 @@ class ChunkedEnv(EnvBase):
         self._chunk = 0
         self._success = False
         if self.recorder is not None:
-            self.recorder.start_episode()
+            self.recorder.start_episode(int(self.base.episode_seed) if self._tells_seed else None)
             self._record(None)
         out = self._observation(first)
         for key in ("done", "terminated", "truncated"):
@@ -203,7 +203,7 @@ class ChunkedEnv(EnvBase):
             self.recorder.add(self.base.render_rgb(s.size, s.size, camera=s.camera), label)
 
     def close(self, *, raise_if_closed: bool = True) -> None:
-        if self.recorder is not None:
-            self.recorder.finish()
+        if self.recorder is not None:  # an episode still running (the collector's last reset) is not a video
+            self.recorder.discard()
         self.base.close()
         super().close()

@@ -153,7 +153,9 @@ class DreamDiffusionPolicy(KeyedModule):
         # 2. Encode observations: history O_{0..M-1} and future O_{M..M+N-1}, one shared E_psi.
         #    With world_model_batch_fraction < 1 only the first Bw samples' future frames are encoded.
         B = pc.shape[0]
-        Bw = B if self.world_model_batch_fraction >= 1.0 else max(1, math.ceil(self.world_model_batch_fraction * B))
+        # rounded before the ceiling: 0.07 x 100 is 7.000000000000001 in floats (8 samples, not 7)
+        Bw = B if self.world_model_batch_fraction >= 1.0 else max(1, math.ceil(round(self.world_model_batch_fraction
+                                                                                       * B, 9)))
         if self.uses_target_table:
             if self.target_table is None or FRAME_INDEX not in batch.keys():
                 raise RuntimeError("world_model.target_refresh_every > 0: the loss needs the batch's 'frame_index' "

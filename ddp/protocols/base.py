@@ -19,6 +19,9 @@ class EvalProtocol:
     tracker: bool = True  # False: no tracker and no recovery
     occlusion: bool = False  # blind the camera at eval.occlusion_chunk for eval.occlusion_chunks
     env_tracking: bool = False  # honour eval.env_oracle_tracking (the env's own oracle tracks)
+    # the condition is DDP's (its forecasts, D_R-I or imagination): a model without a world model is refused
+    # rather than run as another protocol under this name (optional for plugins: absent reads False)
+    needs_world_model: bool = False
 
 
 @dataclass

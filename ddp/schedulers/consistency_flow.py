@@ -33,7 +33,8 @@ Choices (all but the last follow FlowPolicy's public code):
   evaluates v_r under ``torch.no_grad`` instead (a stop-gradient target, as
   in consistency models); on a toy problem it learns far slower, because the
   ground truth then reaches the network only through the r = 1 pairs.
-  Non-finite values of v_r are zeroed.
+  Non-finite values of v_r are zeroed (FlowPolicy's ``nan_to_num`` zeroes NaN but maps +/-inf to
+  +/-float max, so a diverging network's loss blows up there; here it stays finite).
 - The mean runs over every element; velocity terms outside the mask count
   as zeros in it (FlowPolicy's per-sample mean then batch mean, which is the
   same number).
