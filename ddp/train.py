@@ -363,73 +363,79 @@ class Trainer:
                 agreed_stop = True
                 raise interruption(requested[0] if requested else signal.SIGTERM)
 
-        try:
-            with stop_requests(requested):
-                while epoch < cfg.epochs and step < total:
-                    order = self._epoch_order(epoch, len(dataset))
-                    while batch_in_epoch < per_epoch and step < total:
-                        idx = order[batch_in_epoch * cfg.batch_size : (batch_in_epoch + 1) * cfg.batch_size]
-                        optimizer.zero_grad(set_to_none=True)
-                        if refresh and (table_step is None or step - table_step >= refresh):
-                            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
-                                model.refresh_target_table(dataset.steps["point_cloud"], dataset.steps["agent_pos"])
-                            table_step = step
-                        step_losses = self._backward(dataset, idx, noises, loss_fn, parallel, keys=list(sums))
-                        if cfg.grad_clip_norm:
-                            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
-                        updating = True  # the update, from the optimiser to the counters, is all or nothing
-                        optimizer.step()
-                        lr_sched.step()
-                        if ema is not None:
-                            ema.update(model)
-                        step += 1
-                        batch_in_epoch += 1
-                        boundary_noise = {i: noises[i].get_state() for i in mine}
-                        updating = False
-                        samples += idx.numel()
-                        for k in sums:
-                            sums[k] += step_losses[k]
-                        count += 1
-                        bar.update(1)
-                        if step % cfg.log_every_steps == 0 or step == total:
-                            means = window_means()
-                            bar.set_postfix({k: f"{v:.4f}" for k, v in means.items()})
-                            if logger is not None:
-                                for k, v in means.items():
-                                    logger.log_scalar(k, v, step=step)
-                                logger.log_scalar("lr", lr_sched.get_last_lr()[0], step=step)
-                            last_means, sums, count = means, {k: 0.0 for k in sums}, 0
-                        stop_at_boundary()
-                    if batch_in_epoch >= per_epoch:
-                        epoch, batch_in_epoch = epoch + 1, 0
-                        if epoch % cfg.checkpoint_every_epochs == 0:
-                            checkpoint(raise_deferred=False)
+        # the loop's handlers (stop_requests) and the save's (signals_deferred) are set one after the other: a
+        # signal in between is recorded here, not raised before the checkpoint is written
+        between: list[int] = []
+        with signals_deferred(between):
+            try:
+                with stop_requests(requested):
+                    while epoch < cfg.epochs and step < total:
+                        order = self._epoch_order(epoch, len(dataset))
+                        while batch_in_epoch < per_epoch and step < total:
+                            idx = order[batch_in_epoch * cfg.batch_size : (batch_in_epoch + 1) * cfg.batch_size]
+                            optimizer.zero_grad(set_to_none=True)
+                            if refresh and (table_step is None or step - table_step >= refresh):
+                                with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=cfg.autocast_bf16):
+                                    model.refresh_target_table(dataset.steps["point_cloud"], dataset.steps["agent_pos"])
+                                table_step = step
+                            step_losses = self._backward(dataset, idx, noises, loss_fn, parallel, keys=list(sums))
+                            if cfg.grad_clip_norm:
+                                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
+                            updating = True  # the update, from the optimiser to the counters, is all or nothing
+                            optimizer.step()
+                            lr_sched.step()
+                            if ema is not None:
+                                ema.update(model)
+                            step += 1
+                            batch_in_epoch += 1
+                            boundary_noise = {i: noises[i].get_state() for i in mine}
+                            updating = False
+                            samples += idx.numel()
+                            for k in sums:
+                                sums[k] += step_losses[k]
+                            count += 1
+                            bar.update(1)
+                            if step % cfg.log_every_steps == 0 or step == total:
+                                means = window_means()
+                                bar.set_postfix({k: f"{v:.4f}" for k, v in means.items()})
+                                if logger is not None:
+                                    for k, v in means.items():
+                                        logger.log_scalar(k, v, step=step)
+                                    logger.log_scalar("lr", lr_sched.get_last_lr()[0], step=step)
+                                last_means, sums, count = means, {k: 0.0 for k in sums}, 0
                             stop_at_boundary()
-        except KeyboardInterrupt:  # Ctrl-C, or Preempted (SIGTERM / SIGHUP)
-            # a further signal waits until the checkpoint is written (the save is what it asks for too)
-            with signals_deferred():
-                bar.close()
-                # Not when the interruption came in the middle of an update (only a second Ctrl-C, or an
-                # exception raised by the code, can do that: signals wait for a step boundary): that step is
-                # half applied, and the last checkpoint stands. Under torchrun only a stop all ranks agreed
-                # on saves: the save is a collective.
-                if saved_step != step and not updating and (agreed_stop or not ranks.enabled):
-                    checkpoint(raise_deferred=False)
-                elif updating and ranks.main:
-                    warnings.warn(f"training interrupted in the middle of step {step + 1}'s update: not saved; "
-                                  f"{ckpt_path} holds step {max(saved_step, 0)}", RuntimeWarning, stacklevel=2)
-            raise
-        else:
-            # the run is done: a stop asked for from here on waits until the final checkpoint is written
-            with signals_deferred(requested):
-                bar.close()
-                if count:  # the steps since the last log line: a collective on every rank, before the save
-                    last_means = window_means()
-                path = checkpoint(raise_deferred=False)
-            if requested:
-                raise interruption(requested[0])
-        finally:  # the target table is saved with each checkpoint (a resume reloads it), never kept on the model
-            model.target_table = None
+                        if batch_in_epoch >= per_epoch:
+                            epoch, batch_in_epoch = epoch + 1, 0
+                            if epoch % cfg.checkpoint_every_epochs == 0:
+                                checkpoint(raise_deferred=False)
+                                stop_at_boundary()
+            except KeyboardInterrupt:  # Ctrl-C, or Preempted (SIGTERM / SIGHUP)
+                # a further signal waits until the checkpoint is written (the save is what it asks for too)
+                with signals_deferred():
+                    bar.close()
+                    # Not when the interruption came in the middle of an update (only a second Ctrl-C, or an
+                    # exception raised by the code, can do that: signals wait for a step boundary): that step is
+                    # half applied, and the last checkpoint stands. Under torchrun only a stop all ranks agreed
+                    # on saves: the save is a collective.
+                    if saved_step != step and not updating and (agreed_stop or not ranks.enabled):
+                        checkpoint(raise_deferred=False)
+                    elif updating and ranks.main:
+                        warnings.warn(f"training interrupted in the middle of step {step + 1}'s update: not saved; "
+                                      f"{ckpt_path} holds step {max(saved_step, 0)}", RuntimeWarning, stacklevel=2)
+                raise
+            else:
+                # the run is done: a stop asked for from here on waits until the final checkpoint is written
+                with signals_deferred(requested):
+                    bar.close()
+                    if count:  # the steps since the last log line: a collective on every rank, before the save
+                        last_means = window_means()
+                    path = checkpoint(raise_deferred=False)
+                if requested:
+                    raise interruption(requested[0])
+            finally:  # the target table is saved with each checkpoint (a resume reloads it), never kept on the model
+                model.target_table = None
+        if between:
+            raise interruption(between[0])
         seconds = time.perf_counter() - t0
         return TrainResult(
             steps=step, epochs=epoch, loss=last_means["loss"], loss_bc=last_means["loss_bc"],
@@ -476,10 +482,13 @@ class Trainer:
         ``keys`` averaged over the micro-batches."""
         cfg, model, ranks = self.cfg, self.exp.model, self.ranks
         mine = list(noises)
-        size = idx.numel() // cfg.micro_batches
+        # equal parts when the batch is whole; a batch of a dataset smaller than batch_size splits into parts
+        # one window apart, each weighted by its share (it cut every part to the smallest: windows went untrained)
+        parts = torch.tensor_split(idx, cfg.micro_batches)
+        held = sum(parts[i].numel() for i in mine)
         step_losses = {k: 0.0 for k in keys}
         for j, i in enumerate(mine):
-            part = idx[i * size : (i + 1) * size]
+            part = parts[i]
             batch = dataset.batch(part).to(self.device)
             if model.uses_target_table:
                 batch.set(FRAME_INDEX, dataset.indices[part].to(self.device))
@@ -495,9 +504,9 @@ class Trainer:
                         objective, losses = parallel(batch, noises[i])
                 # the mean over the global batch, whatever share of it this rank holds; backward outside autocast
                 # (torch's advice: a custom backward would otherwise run its ops in bf16)
-                (objective * (ranks.world / cfg.micro_batches)).backward()
+                (objective * (ranks.world * part.numel() / idx.numel())).backward()
             for k in step_losses:
-                step_losses[k] += losses[k].detach().item() / len(mine)
+                step_losses[k] += losses[k].detach().item() * part.numel() / held
         return step_losses
 
     def _logger(self):

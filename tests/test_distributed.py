@@ -183,3 +183,45 @@ def test_ranks_that_would_resume_from_different_steps_are_refused(tmp_path):
     with pytest.raises(CheckpointError, match=r"different \(step, epoch, batch\): \[\(5, 1, 2\), \(0, 0, 0\)\].*"
                                               "one folder all ranks share"):
         same_start(TwoRanks([(5, 1, 2), (0, 0, 0)]), (5, 1, 2), tmp_path)
+
+
+def test_micro_batches_of_a_dataset_smaller_than_the_batch_train_every_window(tmp_path, monkeypatch):
+    """With fewer windows than batch_size, an epoch's one batch holds them all; it was cut into micro-batches of
+    len // micro_batches windows each, so the remainder went untrained every epoch (8 of 15 with 8 parts)."""
+    from ddp.data.sequence import SequenceDataset
+
+    r = copy.deepcopy(TINY)
+    r["data"]["episodes"] = 1
+    r["train"].update(batch_size=256, micro_batches=8, max_steps=1, epochs=1, output_dir=str(tmp_path / "run"))
+    exp = build(r)
+    seen = []
+    batch = SequenceDataset.batch
+    monkeypatch.setattr(SequenceDataset, "batch", lambda self, part: seen.extend(part.tolist()) or batch(self, part))
+    torch.set_num_threads(1)
+    exp.train(progress=False)
+    assert len(seen) > 8 and len(seen) % 8 and sorted(seen) == list(range(len(seen)))  # every window once
+
+
+def test_a_stop_signal_between_the_loops_handlers_and_the_final_saves_still_saves(tmp_path, monkeypatch):
+    """The loop's signal handlers are undone before the final save installs its own: a SIGTERM in between
+    raised Preempted before the last checkpoint was written (the run's work since its last one was lost)."""
+    import signal
+    import sys
+
+    import ddp.train as train_mod
+    from ddp.preemption import Preempted
+
+    real = train_mod.signals_deferred
+
+    def deferred(received=None):
+        if received is not None and received is sys._getframe(1).f_locals.get("requested"):  # the final save's
+            os.kill(os.getpid(), signal.SIGTERM)  # arrives before its handlers are set
+        return real(received)
+
+    monkeypatch.setattr(train_mod, "signals_deferred", deferred)
+    r = copy.deepcopy(TINY)
+    r["train"].update(max_steps=2, epochs=100, checkpoint_every_epochs=100, output_dir=str(tmp_path / "run"))
+    torch.set_num_threads(1)
+    with pytest.raises(Preempted):
+        build(r).train(progress=False)
+    assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 2
