@@ -23,8 +23,10 @@ def protocol_result(episodes: list[dict], *, seconds: float, thresholds: dict, v
         "detector": detector,
         "tau": thresholds.get("tau"),
         "alpha": thresholds.get("alpha"),
-        # how the threshold was set (the per-chunk reference itself stays beside the checkpoint)
-        "calibration": {k: thresholds[k] for k in CALIBRATION_FIELDS if k in thresholds} or None,
+        # how the threshold was calibrated (the per-chunk reference itself stays beside the checkpoint); None
+        # where nothing was (a tau given in the recipe)
+        "calibration": ({k: thresholds[k] for k in CALIBRATION_FIELDS if k in thresholds}
+                        if thresholds.get("fit_episodes") or thresholds.get("threshold_episodes") else None),
         "per_episode": episodes,
     }
     info = task_info_mean(episodes)

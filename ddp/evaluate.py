@@ -23,7 +23,7 @@ from ddp.eval_runner import (  # noqa: F401 (re-exported: the runner's public na
     ChunkedEnvFactory, calibrate_detector, calibration_env, calibration_episodes, env_factory, env_overrides, make_chunked_env,
     evaluation_blocks, rollout_episodes,
 )
-from ddp.protocols.base import check_protocols, get_protocol
+from ddp.protocols.base import check_protocols, check_protocols_for_model, get_protocol
 from ddp.video import VideoSettings
 
 _env_overrides = env_overrides  # the name earlier code used
@@ -59,17 +59,7 @@ def settle(exp, protocols, *, episodes, output_dir, num_envs, seed, video, paral
         check_protocols(protocols, source="--protocols")
         if not protocols:
             raise RecipeError("no protocol given", source="--protocols")
-    if len(set(protocols)) < len(protocols):
-        twice = next(p for p in protocols if protocols.count(p) > 1)
-        raise RecipeError(f"protocol {twice} is named twice", **named)
-    for name in protocols:
-        protocol = get_protocol(name)
-        if protocol.imagine and not exp.model.has_world_model:
-            raise RecipeError(f"protocol {name} acts on imagined latents: it needs a world model "
-                              "(world_model.enabled is false)", **named)
-        if getattr(protocol, "needs_world_model", False) and not exp.model.has_world_model:
-            raise RecipeError(f"protocol {name} is DDP's (forecasts, D_R-I, imagination): it needs a world model "
-                              "(world_model.enabled is false; the DP3 ablation's tracking is ood_tracking)", **named)
+    check_protocols_for_model(protocols, has_world_model=exp.model.has_world_model, **named)
     episodes = cfg.episodes if episodes is None else episodes
     num_envs = cfg.num_envs if num_envs is None else num_envs
     for flag, value in (("--episodes", episodes), ("--num-envs", num_envs)):

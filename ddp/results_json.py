@@ -11,9 +11,16 @@ import math
 import re
 from typing import Any
 
+import numpy as np
+
 
 def strict(value: Any) -> Any:
-    """``value`` with every non-finite float replaced by None (containers copied, not mutated)."""
+    """``value`` with every non-finite float replaced by None (containers copied, not mutated); numpy scalars
+    and arrays as Python numbers and lists (a recipe changed from Python may hold them)."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    elif isinstance(value, np.ndarray):
+        value = value.tolist()
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):

@@ -485,7 +485,6 @@ class Trainer:
         # equal parts when the batch is whole; a batch of a dataset smaller than batch_size splits into parts
         # one window apart, each weighted by its share (it cut every part to the smallest: windows went untrained)
         parts = torch.tensor_split(idx, cfg.micro_batches)
-        held = sum(parts[i].numel() for i in mine)
         step_losses = {k: 0.0 for k in keys}
         for j, i in enumerate(mine):
             part = parts[i]
@@ -505,8 +504,8 @@ class Trainer:
                 # the mean over the global batch, whatever share of it this rank holds; backward outside autocast
                 # (torch's advice: a custom backward would otherwise run its ops in bf16)
                 (objective * (ranks.world * part.numel() / idx.numel())).backward()
-            for k in step_losses:
-                step_losses[k] += losses[k].detach().item() * part.numel() / held
+            for k in step_losses:  # weighted so that the mean over ranks (window_means) is the global batch's
+                step_losses[k] += losses[k].detach().item() * ranks.world * part.numel() / idx.numel()
         return step_losses
 
     def _logger(self):

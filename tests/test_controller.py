@@ -113,6 +113,12 @@ def test_per_chunk_calibration_reaches_every_protocol(exp, tmp_path):
     assert len(cal["chunk_scale"]) == first["per_episode"][0]["chunks"]  # one per chunk index seen
     assert (tmp_path / "discrepancy_ood_ddp.png").exists()
     assert "detection" in first and "Detection" in (tmp_path / "table.md").read_text()
+    # results.json says how tau was calibrated (and nothing for a tau the recipe gives)
+    stored = json.loads((tmp_path / "results.json").read_text())["protocols"]["ood_ddp"]["calibration"]
+    assert stored["fit_episodes"] == stored["threshold_episodes"] == 2 and stored["threshold_on"] == "all"
+    exp.parts["controller.detector"].config.tau = 1.0
+    rep = exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path / "fixed", progress=False)
+    assert rep["protocols"]["ood_ddp"]["calibration"] is None and rep["protocols"]["ood_ddp"]["tau"] == 1.0
 
 
 def test_a_saved_calibration_serves_only_the_env_it_was_made_in(exp, tmp_path, monkeypatch):
@@ -196,7 +202,7 @@ def test_state_is_per_environment(exp):
     assert out["ddp", "imagined"].tolist() == [True, False]
 
 
-def test_evaluate_writes_results_table_and_plots(exp, tmp_path):
+def test_evaluate_writes_results_table_and_plots(exp, tmp_path, monkeypatch):
     exp.recipe.controller.forecast_every_cycle = True  # D_R-I traces for the plot
     rep = exp.evaluate(["id", "ood_ddp", "imagination_100"], episodes=2, output_dir=tmp_path, progress=False)
     assert set(rep["protocols"]) == {"id", "ood_ddp", "imagination_100"}
@@ -212,7 +218,18 @@ def test_evaluate_writes_results_table_and_plots(exp, tmp_path):
     assert stored["model_digest"] == model_digest(exp.model) and stored["code"]["ddp"]
     assert stored["settings"]["controller"]["forecast_every_cycle"] is True
     assert stored["parts"]["controller.detector"]["name"] == exp.parts["controller.detector"].plugin.name
-    assert not list(tmp_path.glob(".*.tmp"))  # written atomically, nothing left beside
+    assert not list(tmp_path.glob(".*.tmp"))  # nothing left beside
+    # numpy values a Python caller sets (accepted by the option checks) reach results.json as numbers, and
+    # both report files go through the atomic writer
+    import ddp.atomic_file as atomic_file
+
+    written, real = [], atomic_file.atomic_write
+    monkeypatch.setattr(atomic_file, "atomic_write", lambda path, *a, **k: written.append(path.name) or real(path, *a, **k))
+    exp.recipe.eval.env = {"max_episode_steps": np.int64(64)}
+    exp.evaluate(["id"], episodes=1, output_dir=tmp_path / "np", progress=False)
+    assert json.loads((tmp_path / "np" / "results.json").read_text())["settings"]["eval"]["env"] == {
+        "max_episode_steps": 64}
+    assert sorted(written) == ["results.json", "table.md"]
     first = rep["protocols"]["ood_ddp"]["per_episode"][0]
     assert first["mode"][2] == 1.0
     # each chunk's subtask and the controller's shifts: tracked when flagged (chunk 2), recovered at chunk 4

@@ -225,3 +225,24 @@ def test_a_stop_signal_between_the_loops_handlers_and_the_final_saves_still_save
     with pytest.raises(Preempted):
         build(r).train(progress=False)
     assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 2
+
+
+def test_uneven_micro_batches_across_ranks_log_the_single_process_losses(tmp_path):
+    """A dataset smaller than batch_size splits into micro-batches one window apart, so two ranks hold different
+    numbers of windows: the weights and the logged losses must still be the one-process run's (the ranks'
+    losses were averaged equally: 1.83805 against 1.83750)."""
+    r = copy.deepcopy(TINY)
+    r["data"]["episodes"] = 1
+    r["train"].update(batch_size=256, micro_batches=8, max_steps=2, epochs=100, log_every_steps=1,
+                      checkpoint_every_epochs=100)
+    recipe = tmp_path / "tiny.yaml"
+    recipe.write_text(yaml.safe_dump(r))
+    torch.set_num_threads(1)
+    build(str(recipe), [f"train.output_dir={tmp_path / 'one'}"]).train(progress=False)
+    done = _torchrun(str(recipe), tmp_path / "two")
+    assert done.returncode == 0, done.stderr[-3000:]
+    _same_weights(tmp_path / "one" / "last.pt", tmp_path / "two" / "last.pt")
+    one, two = (load_checkpoint(tmp_path / d / "last.pt")["losses"] for d in ("one", "two"))
+    assert one.keys() == two.keys()
+    for k in one:
+        assert two[k] == pytest.approx(one[k], rel=1e-5), k

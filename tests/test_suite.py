@@ -130,6 +130,10 @@ def test_task_protocols_keep_those_a_task_supports(suite_file):
     ({"methods": {"b__c": {}}}, r"methods.b__c.*without '__'"),
     ({"tasks": {"near/x": "tiny.yaml"}}, r"tasks.near/x.*letters, digits"),
     ({"methods": {"dp3,ddp": {}}}, r"methods.dp3,ddp.*letters, digits"),
+    # protocols the run would refuse after training: named twice, or DDP's on a model without a world model
+    ({"methods": {"dp3": {"overlay": "dp3.yaml", "protocols": ["id", "ood_ddp_oracle"]}}},
+     r"methods.dp3.protocols: protocol ood_ddp_oracle is DDP's"),
+    ({"methods": {"ddp": {"protocols": ["id", "ood_base", "id"]}}}, r"methods.ddp.protocols: protocol id is named twice"),
 ])
 def test_bad_suite_files_are_one_line(suite_file, edit, message):
     data = yaml.safe_load(suite_file.read_text())

@@ -45,3 +45,21 @@ def check_protocols(names, *, source: str | None, key: str | None = None) -> Non
         if not isinstance(name, str) or not name:
             raise RecipeError(f"a protocol name must be a non-empty string; got {name!r}", source=source, key=key)
         registry.get("protocol", name, source=source, key=key)
+
+
+def check_protocols_for_model(names, *, has_world_model: bool, source: str | None, key: str | None = None) -> None:
+    """One line for a protocol named twice, or one the model cannot run: an imagination protocol, or one of
+    DDP's conditions (``needs_world_model``), on a model without a world model."""
+    names = list(names)
+    for name in names:
+        if names.count(name) > 1:
+            raise RecipeError(f"protocol {name} is named twice", source=source, key=key)
+    for name in names:
+        protocol = get_protocol(name, source=source, key=key)
+        if protocol.imagine and not has_world_model:
+            raise RecipeError(f"protocol {name} acts on imagined latents: it needs a world model "
+                              "(world_model.enabled is false)", source=source, key=key)
+        if getattr(protocol, "needs_world_model", False) and not has_world_model:
+            raise RecipeError(f"protocol {name} is DDP's (forecasts, D_R-I, imagination): it needs a world model "
+                              "(world_model.enabled is false; the DP3 ablation's tracking is ood_tracking)",
+                              source=source, key=key)

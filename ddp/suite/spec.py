@@ -191,7 +191,7 @@ def _overlay(path: str, *, key: str, source: str) -> dict:
 def load_suite(path: str | Path) -> SuiteSpec:
     """Read and expand a suite file; one-line ``RecipeError`` naming the offending key."""
     from ddp.errors import suggest
-    from ddp.protocols.base import check_protocols
+    from ddp.protocols.base import check_protocols, check_protocols_for_model
     from ddp.experiment import blame_override
     from ddp.recipe import _read_yaml, apply_overrides, load_yaml_tree, merge
     from ddp.schema import validate
@@ -279,9 +279,13 @@ def load_suite(path: str | Path) -> SuiteSpec:
                 r = apply_overrides(r, [f"name={name}_{label}_{m_label}_s{seed}", f"seed={seed}"])
                 r = merge(r, {"train": {"output_dir": run_dir}, "eval": {"output_dir": f"{run_dir}/eval"}})
                 try:  # every run checked before any starts: a typo fails now, not hours in
-                    validate(r, f"{source} [{label} / {m_label}]", import_plugins=True)
+                    checked, _, _ = validate(r, f"{source} [{label} / {m_label}]", import_plugins=True)
                 except RecipeError as err:
                     raise blame_override(err, overrides) from None
+                # and the protocols it will be evaluated on (twice, or DDP's without a world model: after training)
+                check_protocols_for_model(chosen or checked.eval.protocols,
+                                          has_world_model=checked.world_model.enabled, source=source,
+                                          key=f"methods.{m_label}.protocols" if chosen else f"tasks.{label}.recipe")
                 runs.append(RunSpec(name, label, m_label, seed, task_bench[label], r,
                                     tuple(chosen) if chosen else None, episodes))
     runs.sort(key=lambda r: seeds.index(r.seed))  # seed-major: every task and method once before any repeats
