@@ -509,7 +509,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_detect)
 
-    p = sub.add_parser("suite", help="train and evaluate tasks x methods x seeds, resumable, aggregated", description="Expand a suite file (tasks x methods x seeds; see ddp/suite/spec.py) into runs, train and evaluate each one (skipping those whose result is already stored under results/suites/<suite>/), then write the paper's Table 1 layout (mean ± std over seeds) as table.md / .json / .csv / .png. Not to be confused with torch's DistributedDataParallel: DDP here is the Dream Diffusion Policy.")
+    p = sub.add_parser("suite", help="train and evaluate tasks x methods x seeds, resumable, aggregated", description="Expand a suite file (tasks x methods x seeds; see ddp/suite/spec.py) into runs, train and evaluate each one (skipping those whose result is already stored under results/suites/<suite>/), then write the paper's Table 1 layout (mean ± std over seeds) as table.md / .json / .csv / .png, with cost.md (wall time per run), vs_reference.md and detection.png. Not to be confused with torch's DistributedDataParallel: DDP here is the Dream Diffusion Policy.")
     p.add_argument("suite", help="path to a suite YAML file (e.g. suites/metaworld_smoke.yaml)")
     p.add_argument("--workers", type=int, help="runs at once, each in its own process (default 1: sequential in this process); not with --ray")
     p.add_argument("--threads", type=int, help="torch threads per run (default: all cores / workers; 1 under --ray)")

@@ -192,6 +192,13 @@ def test_config_validation_and_camera_errors():
         RealBackendConfig.from_env_config({"real": {"robot_hots": "1.2.3.4"}})
     cfg = RealBackendConfig.from_env_config({"real": {"robot_host": "1.2.3.4", "motion_wait": "reached"}})
     assert cfg.robot_host == "1.2.3.4" and cfg.motion_wait == "reached"
+    # a typo in the recipe's env.real is one line when the recipe is read, not first at the robot
+    from ddp import build
+    from ddp.errors import RecipeError
+
+    with pytest.raises(RecipeError, match="env.real.robot_hots=x: env: real: unknown option 'robot_hots'; did you mean "
+                                         "'robot_host'"):
+        build(str(Path(__file__).resolve().parents[1] / "recipes" / "franka_stack.yaml"), ["env.real.robot_hots=x"])
     with pytest.raises(ValueError, match="cameras.policy.type must be one of"):
         make_camera("policy", {"type": "kinect"})
     with pytest.raises(CalibrationError, match="needs a calibration file"):

@@ -183,6 +183,17 @@ class FrankaEnvConfig(ObservationOptions):
     def __post_init__(self):
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {', '.join(TASKS)}; got {self.task!r}{suggest(self.task, TASKS)}")
+        if self.real:  # checked with the recipe, not first when the robot backend is built
+            from dataclasses import fields as dataclass_fields
+
+            from ddp.envs.franka.real import RealBackendConfig
+
+            names = [f.name for f in dataclass_fields(RealBackendConfig)]
+            if not isinstance(self.real, dict):
+                raise ValueError(f"real must be a mapping of the real backend's options; got {self.real!r}")
+            for key in self.real:
+                if key not in names:
+                    raise ValueError(f"real: unknown option {key!r}{suggest(str(key), names)}")
         # task defaults are filled in, so that a dumped recipe (and a demo cache key) holds the values used
         task = TASKS[self.task]
         if self.max_episode_steps is None:
