@@ -116,7 +116,7 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
             key = results_json.dumps(section)
             if key not in calibrations:
                 calibrations[key] = _calibration(exp, ctrl.detector, section, seed=report["calibration_seed"],
-                                                 runs=runs)
+                                                 model_hash=report["model_digest"], runs=runs)
             ctrl.detector.load_calibration(calibrations[key])
         vid = None
         if s.video:
@@ -174,10 +174,11 @@ def _detector_section(exp, protocol) -> dict:
     return exp.parts["controller.detector"].as_dict()
 
 
-def _calibration(exp, detector, section: dict, *, seed: int, runs: dict) -> dict:
-    """The detector's calibration: read from beside the checkpoint when it was made for this model,
-    detector, ID env and sampling setup, else fitted on ``eval.calibration_episodes`` ID rollouts and saved there."""
-    from ddp.calibration_file import calibration_path, load_calibration, model_digest, save_calibration
+def _calibration(exp, detector, section: dict, *, seed: int, model_hash: str, runs: dict) -> dict:
+    """The detector's calibration: read from beside the checkpoint when it was made for this model
+    (``model_hash``: its weights' digest, computed once per evaluation), detector, ID env and sampling setup,
+    else fitted on ``eval.calibration_episodes`` ID rollouts and saved there."""
+    from ddp.calibration_file import calibration_path, load_calibration, save_calibration
 
     cfg = exp.recipe.eval
     # the ID env the scores come from: the recipe's env section (cloud size, camera, noise, ...), the
@@ -186,7 +187,7 @@ def _calibration(exp, detector, section: dict, *, seed: int, runs: dict) -> dict
               "obs_steps": exp.model.obs_steps, "action_steps": exp.model.action_steps}
     sampling = {"policy": exp.resolved["policy"]["scheduler"], "world_model": exp.resolved["world_model"]["scheduler"],
                 "forecast_samples": exp.recipe.controller.forecast_samples}
-    key = dict(model_hash=model_digest(exp.model), detector=section, id_env=id_env,
+    key = dict(model_hash=model_hash, detector=section, id_env=id_env,
                episodes=cfg.calibration_episodes, max_episodes=cfg.max_calibration_episodes, seed=seed,
                sampling=sampling, device=next(exp.model.parameters()).device.type)
     path = calibration_path(exp.checkpoint_path) if exp.checkpoint_path is not None else None

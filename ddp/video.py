@@ -203,13 +203,13 @@ class EpisodeRecorder:
     def finish(self) -> Path | None:
         """Write the current episode (if recorded) and forget its frames."""
         if not self.recording or not self.frames:
-            self.frames, self.chunk_ends = [], {}
+            self.discard()
             return None
         s = self.settings
         name = Path(s.directory) / f"{s.prefix}{s.first_seed + self.episode if self.seed is None else self.seed}"
         path = write_video(self.frames, name, s.fps)
         ends = [self.chunk_ends[c] for c in sorted(self.chunk_ends)] or [len(self.frames) - 1]
         contact_sheet([self.frames[i] for i in ends], name.with_name(f"{name.name}_sheet.png"))
-        self.frames, self.chunk_ends = [], {}
+        self.discard()
         self.written.append(path)
         return path

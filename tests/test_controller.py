@@ -138,9 +138,19 @@ def test_a_saved_calibration_serves_only_the_env_it_was_made_in(exp, tmp_path, m
     def evaluate_once():
         exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path, progress=False)
 
+    import ddp.calibration_file as calibration_file
+
+    digests, real_digest = [], calibration_file.model_digest
+    monkeypatch.setattr(calibration_file, "model_digest", lambda m: digests.append(1) or real_digest(m))
     evaluate_once()
+    assert len(digests) == 1  # the weights are hashed once per evaluation (results.json and the calibration key)
     evaluate_once()
     assert len(calls) == 1  # the second evaluation read the saved calibration
+    with torch.no_grad():  # other weights: calibrated again
+        next(exp.model.parameters()).add_(0.01)
+    evaluate_once()
+    assert len(calls) == 2
+    calls.pop()
     exp.resolved["env"]["num_points"] = exp.resolved["env"]["num_points"] + 1
     evaluate_once()
     assert len(calls) == 2
