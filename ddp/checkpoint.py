@@ -43,6 +43,8 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     """Read a checkpoint; a missing, truncated or foreign file raises :class:`CheckpointError`. ``mmap``
     maps the tensors instead of reading them (for a caller that only looks at the recipe or step)."""
     path = Path(path)
+    if path.is_dir():
+        raise CheckpointError(f"{path}: is a directory, not a checkpoint file")
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     try:

@@ -5,7 +5,6 @@ weights and recipe tests run without it. Small images and few points keep
 the whole file well under a minute on two CPU cores.
 """
 
-import dataclasses
 import subprocess
 import sys
 import zipfile
@@ -313,12 +312,15 @@ def test_demo_source_checks_the_recipe():
         _source(bad)
     pen_env = {"name": "adroit", "task": "pen", "occlusion_chunk": 2, "terminate_on_success": True, "obs_every": 8,
                "obs_history": 2}  # fmt: skip
-    src = _source({**bad, "task": {"action_dim": 24, "agent_pos_dim": 24}, "env": pen_env})
+    rec, parts, _ = validate({**bad, "task": {"action_dim": 24, "agent_pos_dim": 24}, "env": pen_env}, "<test>")
+    src = parts["data"].build(task=rec.task, seed=rec.seed, env=parts["env"])
     assert src.cfg.max_steps == 100 and src.env_config.max_episode_steps == 100  # pen's horizon
     # evaluation-only options are neutralised for the demos, every frame is rendered
     ec = src.env_config
     assert (ec.occlusion_chunk, ec.terminate_on_success, ec.obs_every, ec.obs_history) == (None, False, 1, 1)
-    assert dataclasses.replace(ec, occlusion_chunk=2) != ec
+    # the recipe's env part keeps its evaluation options (the demos' config is a copy)
+    kept = parts["env"].config
+    assert ec is not kept and (kept.occlusion_chunk, kept.terminate_on_success, kept.obs_every) == (2, True, 8)
 
 
 # ------------------------------------------------------------------ evaluation protocols
@@ -333,6 +335,10 @@ def test_paper_protocols_run_and_displacement_is_refused(tmp_path):
     report = exp.evaluate(["id", "imagination_100"], episodes=1, output_dir=tmp_path, progress=False)
     for name in ("id", "imagination_100"):
         assert report["protocols"][name]["episodes"] == 1
+    # open loop: real latents at the first chunk only, imagined ones after it; the id protocol never imagines
+    imagined = report["protocols"]["imagination_100"]["per_episode"][0]["imagined"]
+    assert len(imagined) > 1 and not imagined[0] and all(imagined[1:])
+    assert not any(report["protocols"]["id"]["per_episode"][0]["imagined"])
     with pytest.raises(RecipeError, match="env 'adroit' does not support displacement"):
         exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path, progress=False)
 

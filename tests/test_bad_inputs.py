@@ -145,7 +145,7 @@ CASES = [
                                                                          ["train", r])[1])(*copy_run(tr, t)),
      "the stored recipe is not a mapping"),
     ("checkpoint-is-directory", lambda t, tr: (lambda r, run: ((run / "last.pt").unlink(), (run / "last.pt").mkdir(), ["train", r])[2])(*copy_run(tr, t)),
-     "last.pt"),
+     "last.pt: is a directory, not a checkpoint file"),
     # -------- evaluation
     ("eval-episodes-negative", lambda t, tr: ["eval", tr["recipe"], "--checkpoint", str(tr["ckpt"]), "--episodes", "-1",
                                               "--output-dir", str(t)], "--episodes: must be a whole number >= 1; got -1"),

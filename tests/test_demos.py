@@ -448,7 +448,10 @@ def test_demo_env_config_neutralises_evaluation_options():
     assert (demo.obs_every, demo.obs_history, demo.displacement, demo.oracle_tracking) == (1, 1, False, False)
     assert demo.occlusion_chunk is None and not demo.terminate_on_success and demo.max_episode_steps == 180
     assert demo.num_points == 128 and demo.task == "drawer-open"
-    assert dataclasses.replace(cfg) == cfg  # the recipe's config is not modified
+    # the recipe's config is not modified: a new object, and every evaluation option as the recipe set it
+    assert demo is not cfg
+    assert (cfg.obs_every, cfg.obs_history, cfg.displacement, cfg.oracle_tracking) == (8, 2, True, True)
+    assert cfg.occlusion_chunk == 3 and cfg.terminate_on_success and cfg.max_episode_steps != 180
 
 
 def test_build_trains_from_metaworld_demos(mw_cache, tiny_recipe, monkeypatch, tmp_path):

@@ -3,6 +3,7 @@
 Simulator tests skip when metaworld is not installed; config validation runs without it.
 """
 
+import dataclasses
 import re
 import subprocess
 import sys
@@ -547,3 +548,5 @@ def test_env_option_values_from_python_may_be_numpy():
              "terminate_on_success": np.bool_(False)}
     over = env_overrides(exp, get_protocol("id"), None, extra=extra)
     assert over["seed_tasks"] == 3 and over["settle_steps"] == 5
+    cfg = dataclasses.replace(exp.parts["env"].config, **over)  # as the evaluation's env factory makes it
+    assert tuple(cfg.crop_min) == (-0.6, 0.3, 0.0) and cfg.seed_tasks == 3 and not cfg.terminate_on_success

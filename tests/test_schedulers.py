@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from torch import nn
@@ -107,10 +109,23 @@ def test_sample_keeps_shape(name, shape):
     assert len(seen_t) >= 1
 
 
+#: options other than the defaults, of every kind a config holds (strings, floats, ints, booleans, None)
+NON_DEFAULT = {
+    "ddpm": {"beta_schedule": "linear", "variance_type": "fixed_small_log", "clip_sample": False,
+             "prediction_type": "sample", "num_inference_steps": 25, "beta_end": 0.03},
+    "ddim": {"beta_schedule": "scaled_linear", "set_alpha_to_one": False, "steps_offset": 1,
+             "timestep_spacing": "trailing", "eta": 0.5, "num_inference_steps": 7, "clip_sample_range": 2.0},
+    "consistency_flow": {"eps": 0.02, "num_segments": 3, "num_inference_steps": 2, "stop_grad_r": True,
+                         "time_scale": 49.0},
+}
+
+
 @pytest.mark.parametrize("name", SCHEDULERS)
 def test_config_round_trip_rebuilds_identically(name):
     plugin = get("scheduler", name)
-    cfg = plugin.config_cls()
+    assert name in NON_DEFAULT, f"add non-default options of scheduler {name!r} to NON_DEFAULT"
+    cfg = from_dict(plugin.config_cls, NON_DEFAULT[name])
+    assert cfg != plugin.config_cls()
     again = from_dict(plugin.config_cls, to_dict(cfg))
     assert again == cfg
     a, b = plugin.factory(cfg), plugin.factory(again)
@@ -229,19 +244,44 @@ def test_default_timesteps():
 
 @pytest.mark.parametrize("prediction_type", ["epsilon", "sample"])
 @pytest.mark.parametrize("name", ["ddpm", "ddim"])
-def test_diffusion_oracle_recovers_the_point(name, prediction_type):
-    """With the exact network for a one-point data set, sampling returns that point."""
+def test_diffusion_oracle_samples_the_data_distribution(name, prediction_type):
+    """With the exact network for a two-point data set (+mu with probability 0.8, -mu), sampling lands on the
+    two points in those proportions, and the intermediate samples have the right spread: the component
+    orthogonal to mu carries only noise, with variance 1 - alpha_bar_k (DDPM, by sampling) or scaled by
+    exactly sqrt((1 - alpha_bar_k') / (1 - alpha_bar_k)) per step (DDIM, deterministic). A one-point data set
+    would not test the steps: its clean-sample prediction is the point whatever the path."""
     sched = build(name, {"prediction_type": prediction_type})
-    a1 = torch.tensor([[0.5, -0.25, 0.75]]).expand(4, 3)
+    mu, p = torch.tensor([0.5, -0.25, 0.75]), 0.8
+    unit = mu / mu.norm()
+    seen = {}
 
     def oracle(x, t):
         alpha_bar = per_sample(sched.alphas_cumprod[t.long()], x)
-        eps = (x - alpha_bar**0.5 * a1) / (1 - alpha_bar) ** 0.5
-        return eps if prediction_type == "epsilon" else a1
+        # E[x_0 | x_k] of the mixture: mu tanh(sqrt(alpha_bar) <x, mu> / (1 - alpha_bar) + atanh(2p - 1))
+        logit = alpha_bar**0.5 * (x * mu).sum(-1, keepdim=True) / (1 - alpha_bar) + 0.5 * math.log(p / (1 - p))
+        x0 = mu * torch.tanh(logit)
+        seen[int(t[0])] = x.clone()
+        return (x - alpha_bar**0.5 * x0) / (1 - alpha_bar) ** 0.5 if prediction_type == "epsilon" else x0
 
-    noise = torch.randn(4, 3, generator=torch.Generator().manual_seed(0))
+    noise = torch.randn(8000, 3, generator=torch.Generator().manual_seed(0))
     out = sched.sample(oracle, noise, generator=torch.Generator().manual_seed(1))
-    assert (out - a1).abs().max() < 1e-4
+    plus, minus = (out - mu).norm(dim=-1) < 1e-3, (out + mu).norm(dim=-1) < 1e-3
+    assert bool((plus | minus).all())  # every sample is one of the two points
+    assert abs(plus.float().mean().item() - p) < 0.04  # in the data's proportions (4.5 standard errors)
+
+    def orthogonal(x):
+        return x - (x @ unit)[:, None] * unit
+
+    levels = sched.timesteps.tolist()
+    for k in (70, 50, 30, 10):
+        assert k in levels
+        alpha_bar = sched.alphas_cumprod[k]
+        if name == "ddpm":  # the marginal's noise, from 100 random steps
+            var = orthogonal(seen[k]).pow(2).sum(-1).mean() / 2
+            assert abs(var / (1 - alpha_bar) - 1) < 0.06, (k, var / (1 - alpha_bar))
+        else:  # the ODE scales the noise deterministically, from the first level
+            scale = ((1 - alpha_bar) / (1 - sched.alphas_cumprod[levels[0]])) ** 0.5
+            torch.testing.assert_close(orthogonal(seen[k]), scale * orthogonal(noise), rtol=1e-4, atol=1e-5)
 
 
 @pytest.mark.parametrize("steps", [1, 3])

@@ -201,7 +201,8 @@ def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
     store = ResultStore(suite.results_dir)
     first = store.load(suite.runs[0])
     assert first["protocols"]["id"]["episodes"] == 1 and first["train"]["steps"] == 2
-    assert first["code"]["ddp"] and len(first["code"].get("commit", "0" * 40)) == 40  # what to check out to redo it
+    # what to check out to redo it (the tests run in a git checkout of the package)
+    assert first["code"]["ddp"] and len(first["code"]["commit"]) == 40
     assert (suite_file.parent / "runs/suites/tiny_suite/near__ddp__seed0/log.txt").read_text().count("finished") == 1
 
     # a finished run is not run again; a missing, half-written or stale result is
@@ -589,9 +590,13 @@ def test_reference_rows_sit_under_their_rows_and_average_the_same_tasks(tmp_path
         assert f"| ddp | id (reference) | {a} | {b} | - | {avg} | - |" in (tmp_path / f"part{a}" / "table.md").read_text()
     empty = load_reference({"values": {"ddp": None}}, source="s")  # nothing for a method: no rows, no crash
     write_suite_report(results, tmp_path / "empty", "t", reference=empty)
-    for bad in ({"values": {"ddp": {"id": {"mw": {"a": 130}}}}}, {"label": "p"}, "missing.yaml",
-                {"values": {"ddp": {"id": {"mw": 90}}}}, {"values": {"ddp": ["id"]}}):
-        with pytest.raises(RecipeError, match="reference|percentage|mapping"):
+    for bad, message in (({"values": {"ddp": {"id": {"mw": {"a": 130}}}}}, r"ddp\.id\.mw\.a must be a percentage in \[0, 100\], got 130"),
+                         ({"label": "p"}, r"must be \{label, values: method"),
+                         ("missing.yaml", "reference file not found: missing.yaml"),
+                         ({"values": {"ddp": {"id": {"mw": 90}}}}, r"ddp\.id\.mw must be a mapping .* got 90"),
+                         ({"values": {"ddp": ["id"]}}, r"ddp must be a mapping .* got \['id'\]"),
+                         ({"values": {}, "tolerance": -1}, r"tolerance must be percentage points in \[0, 100\], got -1")):
+        with pytest.raises(RecipeError, match=message):
             load_reference(bad, source="s")
 
 
