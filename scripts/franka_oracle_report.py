@@ -51,13 +51,28 @@ def run(env, oracle, seed: int) -> int | None:
     return None
 
 
+TASKS = ("stack", "pour", "press")
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1; got {text}")
+    return value
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=int, default=20, help="seeded episodes per task and setting")
-    parser.add_argument("--first-seed", type=int, default=0)
-    parser.add_argument("--tasks", nargs="*", default=["stack", "pour", "press"])
+    parser.add_argument("--episodes", type=_positive, default=20, help="seeded episodes per task and setting")
+    parser.add_argument("--first-seed", type=int, default=0, help="the first episode's seed (default 0)")
+    parser.add_argument("--tasks", nargs="*", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
     args = parser.parse_args(argv)
+    try:
+        import robosuite  # noqa: F401
+    except ImportError:
+        print('robosuite is not installed: pip install -e ".[sim]" (the simulated Franka tasks need it)', file=sys.stderr)
+        return 1
     from ddp.envs.franka.env import FrankaEnv, FrankaEnvConfig, make_sim_backend
 
     seeds = range(args.first_seed, args.first_seed + args.episodes)
@@ -84,7 +99,8 @@ def main(argv=None) -> int:
         finally:
             backend.close()
         span = f"{min(lengths)} / {int(np.median(lengths))} / {max(lengths)}" if lengths else "-"
-        print(f"| {task} | {' | '.join(cells)} | {span} | {ms:.1f} |", flush=True)
+        timing = f"{ms:.1f}" if lengths or "ID" in args.settings else "- (ID not run)"
+        print(f"| {task} | {' | '.join(cells)} | {span} | {timing} |", flush=True)
     return 0
 
 

@@ -32,12 +32,22 @@ import warnings
 
 import numpy as np
 
+from ddp.percent import percent
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1; got {text}")
+    return value
+
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=int, default=20, help="seeded episodes per task and setting (seeds 0..N-1)")
+    parser.add_argument("--episodes", type=_positive, default=20,
+                        help="seeded episodes per task and setting (seeds 0..N-1)")
     parser.add_argument("--tasks", nargs="*", default=None, help="subset of the ten tasks (default: all)")
-    parser.add_argument("--max-steps", type=int, default=200, help="episode length")
+    parser.add_argument("--max-steps", type=_positive, default=200, help="episode length")
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore", message="Constant")  # metaworld's policies warn about their own gains
 
@@ -80,10 +90,10 @@ def main(argv=None) -> int:
             env.close()
             cells.append(wins / args.episodes)
         rows.append((task, cells))
-        print(f"{task}: " + ", ".join(f"{c:.2f}" for c in cells), file=sys.stderr, flush=True)
+        print(f"{task}: " + ", ".join(f"{percent(c)} %" for c in cells), file=sys.stderr, flush=True)
 
     d = PAPER_TASKS
-    print(f"\nScripted expert success over {args.episodes} seeded episodes ({args.max_steps} steps), "
+    print(f"\nScripted expert success in % over {args.episodes} seeded episodes ({args.max_steps} steps), "
           f"{time.time() - start:.0f} s\n")
     print("| task | displacement (chunk, delta) | " + " | ".join(s[0] for s in settings) + " |")
     print("|---|---|" + "---|" * len(settings))
@@ -92,9 +102,9 @@ def main(argv=None) -> int:
         what = f"{'+'.join(disp.bodies)} @ {disp.chunk}, {list(disp.delta)}"
         if disp.snap_back_chunk is not None:
             what += f", back @ {disp.snap_back_chunk}"
-        print(f"| {task} | {what} | " + " | ".join(f"{c:.2f}" for c in cells) + " |")
+        print(f"| {task} | {what} | " + " | ".join(percent(c) for c in cells) + " |")
     means = np.mean([cells for _, cells in rows], axis=0)
-    print("| mean | | " + " | ".join(f"{m:.2f}" for m in means) + " |")
+    print("| mean | | " + " | ".join(percent(m, 1) for m in means) + " |")
     return 0
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -48,15 +49,25 @@ def fit(checkpoint: str, windows: int, seed: int) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("checkpoints", nargs="+", help="last.pt files written by ddp train")
-    parser.add_argument("--windows", type=int, default=64, help="demonstration windows sampled")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--windows", type=int, default=64, help="demonstration windows sampled (at least 2)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the windows drawn and of the sampling noise")
     args = parser.parse_args(argv)
+    if args.windows < 2:
+        parser.error(f"--windows: at least 2 (a variance needs two windows); got {args.windows}")
+    from ddp.errors import DDPError
+
+    rows = []
+    for path in args.checkpoints:  # every checkpoint read before the table: a bad path fails in one line
+        try:
+            rows.append((path, fit(path, args.windows, args.seed)))
+        except DDPError as err:
+            print(f"ddp: error: {err}", file=sys.stderr)
+            return 2
     print("| checkpoint | horizon x action dims | MSE to the demos | their variance | ratio |")
     print("|---|---|---|---|---|")
-    for path in args.checkpoints:
-        r = fit(path, args.windows, args.seed)
-        print(f"| {path} | {r['horizon']} x {r['action_dim']} | {r['mse']:.3g} | {r['variance']:.3g} | "
-              f"{r['mse'] / r['variance']:.3g} |")
+    for path, r in rows:
+        ratio = f"{r['mse'] / r['variance']:.3g}" if r["variance"] > 0 else "- (constant demos)"
+        print(f"| {path} | {r['horizon']} x {r['action_dim']} | {r['mse']:.3g} | {r['variance']:.3g} | {ratio} |")
     return 0
 
 

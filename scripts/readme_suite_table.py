@@ -17,6 +17,8 @@ source = root / "results" / "suites" / suite / "table.md"
 if not source.is_file():
     sys.exit(f"{source}: not found; run `ddp suite suites/{suite}.yaml --report` first")
 table = [l for l in source.read_text().splitlines() if l.startswith("|")]
+if len(table) < 3:  # a header, its rule and at least one row: else the README's table would be deleted
+    sys.exit(f"{source}: no table in it; run `ddp suite suites/{suite}.yaml --report` again")
 lines = (root / "README.md").read_text().split("\n")
 marker = f"<!-- suite-table: {suite} -->"
 if marker not in lines:

@@ -15,13 +15,13 @@ PY="${PYTHON:-python3}"
 if [ ! -x "$VENV/bin/python" ]; then
     "$PY" -m venv "$VENV"
 fi
-PIP="$VENV/bin/python -m pip"
-$PIP install -q --upgrade pip >/dev/null
-$VENV/bin/python -c "import torch, sys; sys.exit(0 if torch.__version__.startswith('2.13.0') else 1)" 2>/dev/null \
-    || $PIP install -q ${TORCH_INDEX_URL:+--index-url "$TORCH_INDEX_URL"} "torch==2.13.0"
+PIP=("$VENV/bin/python" -m pip)  # an array: a venv path with a space stays one word
+"${PIP[@]}" install -q --upgrade pip >/dev/null
+"$VENV/bin/python" -c "import torch, sys; sys.exit(0 if torch.__version__.startswith('2.13.0') else 1)" 2>/dev/null \
+    || "${PIP[@]}" install -q ${TORCH_INDEX_URL:+--index-url "$TORCH_INDEX_URL"} "torch==2.13.0"
 if [ -n "$EXTRAS" ]; then
-    $PIP install -q -e ".[$EXTRAS]"
+    "${PIP[@]}" install -q -e ".[$EXTRAS]"
 else
-    $PIP install -q -e .
+    "${PIP[@]}" install -q -e .
 fi
-echo "ddp installed in $VENV ($($VENV/bin/python -c 'import torch; print("torch", torch.__version__)'))"
+echo "ddp installed in $VENV ($("$VENV/bin/python" -c 'import torch; print("torch", torch.__version__)'))"

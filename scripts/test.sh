@@ -9,8 +9,11 @@ bash scripts/setup.sh dev,sim,video
 bash scripts/setup_franky_sim.sh
 VENV="${DDP_VENV:-.venv}"
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
-if [ "${1:-}" = "--slow" ]; then
-    shift
-    exec "$VENV/bin/python" -m pytest -m slow "$@"
+args=() slow=0
+for a in "$@"; do  # --slow anywhere among the arguments
+    if [ "$a" = "--slow" ]; then slow=1; else args+=("$a"); fi
+done
+if [ "$slow" = 1 ]; then
+    exec "$VENV/bin/python" -m pytest -m slow ${args[@]+"${args[@]}"}
 fi
-exec "$VENV/bin/python" -m pytest "$@"
+exec "$VENV/bin/python" -m pytest ${args[@]+"${args[@]}"}

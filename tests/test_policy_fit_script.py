@@ -33,3 +33,7 @@ def test_policy_fit_separates_a_trained_policy_from_an_untrained_one(tmp_path, c
     assert after["mse"] / after["variance"] < 0.5 < before["mse"] / before["variance"]
     assert fit.main([str(trained), "--windows", "8"]) == 0
     assert f"| {trained} | 16 x 4 |" in capsys.readouterr().out
+    # a bad path: one line naming it, before any table
+    assert fit.main([str(trained), str(tmp_path / "missing.pt")]) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and out.err.strip() == f"ddp: error: {tmp_path / 'missing.pt'}: checkpoint not found"
