@@ -3,7 +3,7 @@
 import pytest
 
 from ddp.percent import percent
-from ddp.suite.figures import _coverage_mark, _errors
+from ddp.suite.figures import _bar_note, _errors
 from ddp.suite.report import format_cell
 
 
@@ -24,6 +24,19 @@ def test_an_average_without_spread_draws_no_error_bar_and_says_which_tasks_it_co
     one_seed_average = {"mean": 0.883, "tasks": ["a", "b"], "missing_tasks": ["c", "d", "e"]}
     assert _errors(one_seed_average) == (pytest.approx(88.3), None, None)  # no zero-length bar with caps
     assert _errors({"mean": 0.5, "std": 0.1})[1:] == (pytest.approx(10.0), pytest.approx(10.0))
-    table = {"cells": {"ddp|id|avg:mw": one_seed_average}}
-    assert _coverage_mark(table, [("ddp", "id")], "avg:mw") == " (2/5 tasks)"
-    assert _coverage_mark({"cells": {"ddp|id|avg:mw": {"mean": 1.0, "tasks": ["a"]}}}, [("ddp", "id")], "avg:mw") == ""
+    # a std past 0 or 100 % is clipped there (franka stack's 50 +- 71 ran off the axis)
+    assert _errors({"mean": 0.5, "std": 0.71})[1:] == (pytest.approx(50.0), pytest.approx(50.0))
+    assert _errors({"mean": 0.9, "std": 0.2})[1:] == (pytest.approx(20.0), pytest.approx(10.0))
+    assert _bar_note(one_seed_average) == "2/5" and _bar_note({"mean": 1.0, "tasks": ["a"]}) == ""
+    assert _bar_note(None) == "n/a" and _bar_note({"mean": 0.7, "uneven_seeds": True}) == "†"
+
+
+def test_a_task_bar_is_the_wilson_interval_of_its_pooled_episodes_whatever_its_seeds():
+    """Two seeds' std (85 +- 0 from 17/20 twice) looked certain beside one seed's Wilson interval."""
+    from ddp.suite.report import wilson
+
+    lo, hi = wilson(34, 40)
+    two_seeds = {"mean": 0.85, "seeds": [0, 1], "episodes": 40, "successes": 34, "per_seed": [0.85, 0.85], "std": 0.0}
+    assert _errors(two_seeds) == (pytest.approx(85.0), pytest.approx(85 - 100 * lo), pytest.approx(100 * hi - 85))
+    lo, hi = wilson(0, 20)
+    assert _errors({"mean": 0.0, "episodes": 20, "successes": 0, "wilson95": [lo, hi]}) == (0.0, 0.0, pytest.approx(100 * hi))

@@ -1,13 +1,19 @@
 """A suite report's figures: success per task beside the paper's numbers, and the detector's traces per task.
 
 * :func:`plot_table` (``table.png``): one small panel per task and per benchmark average, one bar
-  per method x protocol (the same colour in every panel) with its error bar (std over seeds, or the
-  95 % Wilson interval with one seed) and a black tick at the published number where there is one.
+  per method x protocol (a hue per method, a shade per protocol, the same in every panel, labelled
+  under the bottom row). A task's error bar is the 95 % Wilson interval over all its episodes (every
+  seed pooled), an average's the std over seeds (clipped to 0-100 %), and each seed's own rate is a
+  dot where there are several; a black tick marks the published number. Written on the bars: "n/a"
+  where a cell was not run (a missing bar is not 0 %), "k/n" for an average over k of its n tasks,
+  "†" for an average whose tasks have different seeds (no spread).
 * :func:`plot_detection` (``detection.png``): one panel per task and method whose runs stored
   detector traces. Each episode's statistic per control cycle on a log axis: in distribution
   (``id_ddp``) grey, disturbed (``ood_ddp``, or any other protocol with a detector statistic) green
-  when the episode succeeded and red when it failed, a dot where the controller switched to OOD, each
-  seed's threshold tau dashed and the first chunk at which the disturbance was visible dotted. Where
+  when the episode succeeded and red when it failed, a dot where the controller switched to OOD in a
+  disturbed episode and a cross where it did in an ID one (a false alarm), each seed's threshold tau in
+  its own line style (its traces share it), and the median first chunk at which the disturbance was
+  visible dotted; the title counts the episodes per disturbance protocol. Where
   a task's automatic detection lags its oracle schedule, this shows whether the alarm came late, too
   early or never.
 """
@@ -29,28 +35,58 @@ def _grid(n: int, cols: int = 5) -> tuple[int, int]:
 
 def _errors(cell: dict | None) -> tuple[float, float | None, float | None]:
     """(mean, lower, upper) error-bar lengths in percent; NaN mean for a missing cell, None lengths for a cell
-    with neither a std nor an interval (an average over one seed, or over tasks with different seeds)."""
+    with no spread to draw (an average over one seed, or over tasks with different seeds).
+
+    A task's cell (successes of episodes) gets the 95 % Wilson interval of all its episodes pooled over seeds:
+    with two or three seeds a std says little, and one kind of bar for every task keeps methods with one
+    and with several seeds comparable. An average gets the std of its per-seed averages, clipped to 0-100 %."""
     if cell is None:
         return float("nan"), None, None
+    from ddp.suite.report import wilson  # (the report module imports this one)
+
     mean = 100 * cell["mean"]
-    if "std" in cell:
-        return mean, 100 * cell["std"], 100 * cell["std"]
-    if "wilson95" in cell:
-        # clipped at 0: at a rate of 0 or 1 the interval's end can round to a hair inside the mean
+    if cell.get("episodes"):
+        lo, hi = wilson(cell["successes"], cell["episodes"])
+    elif "wilson95" in cell:
         lo, hi = cell["wilson95"]
+    else:
+        lo = hi = None
+    if lo is not None:
+        # around the bar's top (the seeds' mean rate: the pooled one with equal episodes per seed), clipped at 0
+        # where the interval's end rounds to a hair inside it
         return mean, max(0.0, mean - 100 * lo), max(0.0, 100 * hi - mean)
+    if "std" in cell:
+        std = 100 * cell["std"]
+        return mean, min(std, mean), min(std, 100 - mean)
     return mean, None, None
 
 
-def _coverage_mark(table: dict, rows, column: str) -> str:
-    """" (k/n tasks)" for an average panel whose cells cover only k of its benchmark's n tasks, as the tables say."""
-    from ddp.suite.report import _coverage  # (the report module imports this one)
+def _bar_note(cell: dict | None) -> str:
+    """What a bar cannot show: "n/a" (not run), "k/n" (an average over k of its n tasks), "†" (an average
+    whose tasks have different seeds)."""
+    if cell is None:
+        return "n/a"
+    note = _coverage(cell) if cell.get("missing_tasks") else ""
+    return note + ("†" if cell.get("uneven_seeds") else "")
 
+
+def _coverage(cell: dict) -> str:
+    from ddp.suite.report import _coverage as coverage  # (the report module imports this one)
+
+    return coverage(cell)
+
+
+def _colours(plt, rows) -> list:
+    """A hue per method, lighter shades for its later protocols: bars of one method read as a group."""
+    methods = list(dict.fromkeys(m for m, _ in rows))
+    hues = plt.get_cmap("tab10")
+    out = []
     for m, p in rows:
-        cell = table["cells"].get(f"{m}|{p}|{column}")
-        if cell and cell.get("missing_tasks"):
-            return f" ({_coverage(cell)} tasks)"
-    return ""
+        own = [q for n, q in rows if n == m]
+        shade = 0.6 * own.index(p) / max(1, len(own) - 1) if len(own) > 1 else 0.0  # 0: the full hue
+        r, g, b, _ = hues(methods.index(m) % hues.N)
+        out.append((r + (1 - r) * shade, g + (1 - g) * shade, b + (1 - b) * shade))
+    return out
 
 
 def _finish(plt, fig, handles, labels, title: str, path: Path) -> Path:
@@ -72,34 +108,57 @@ def plot_table(table: dict, columns: list[str], path: Path, title: str, referenc
     plt = _pyplot()
     reference = reference or {}
     rows = table["rows"]
-    palette = plt.get_cmap("tab10" if len(rows) <= 10 else "tab20")
-    colours = [palette(i % palette.N) for i in range(len(rows))]
+    colours = _colours(plt, rows)
     n_rows, n_cols = _grid(len(columns))
-    fig, axes = plt.subplots(n_rows, n_cols, figsize=(2.2 + 2.4 * n_cols, 0.6 + 2.3 * n_rows),
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(2.2 + 2.4 * n_cols, 1.4 + 2.3 * n_rows),
                              sharey=True, squeeze=False)
     xs = np.arange(len(rows))
+    several_seeds = False
     for ax, column in zip(axes.flat, columns):
         for i, (m, p) in enumerate(rows):
-            mean, lo, hi = _errors(table["cells"].get(f"{m}|{p}|{column}"))
+            cell = table["cells"].get(f"{m}|{p}|{column}")
+            mean, lo, hi = _errors(cell)
             if not math.isnan(mean):
                 bars = {} if lo is None else {"yerr": [[lo], [hi]], "capsize": 1.5, "error_kw": {"lw": 0.8}}
-                ax.bar(i, mean, 0.8, color=colours[i], **bars)
+                ax.bar(i, mean, 0.8, color=colours[i], hatch="//" if cell.get("missing_tasks") else None,
+                       edgecolor="white" if cell.get("missing_tasks") else None, lw=0, **bars)
+                per_seed = cell.get("per_seed") or []
+                if len(per_seed) > 1:
+                    several_seeds = True
+                    ax.plot([i] * len(per_seed), [100 * v for v in per_seed], "o", ms=2, color="black", zorder=4)
+            note = _bar_note(cell)
+            if note:  # at the bar's foot, inside it: a note above a bar near 100 % would leave the panel
+                ax.text(i, 2.0, note, rotation=90 if len(note) > 1 else 0, ha="center", va="bottom", fontsize=6,
+                        color="0.15", zorder=6)
             ref = reference.get(f"{m}|{p}|{column}")
-            if ref is not None:
-                ax.plot([i - 0.4, i + 0.4], [100 * ref] * 2, color="black", lw=1.6)
-        ax.set_title(column.replace("avg:", "average, ") + _coverage_mark(table, rows, column), fontsize=9)
+            if ref is not None:  # drawn over the axis line at 0 %, not clipped by it
+                ax.plot([i - 0.4, i + 0.4], [100 * ref] * 2, color="black", lw=1.6, clip_on=False, zorder=5)
+        ax.set_title(column.replace("avg:", "average, "), fontsize=9)
         ax.set_xticks(xs, [])
-        ax.set_ylim(0, 105)
+        ax.set_ylim(-4, 105)  # 0 % bars and published zeros stay visible above the frame
+        ax.set_yticks(range(0, 101, 20))
+        ax.axhline(0, color="0.4", lw=0.6)
         ax.grid(axis="y", lw=0.3, alpha=0.5)
     for ax in axes.flat[len(columns):]:
         ax.axis("off")
+    last = {c: r for r, c in ((r, c) for r in range(n_rows) for c in range(n_cols) if r * n_cols + c < len(columns))}
+    for c, r in last.items():  # the bottom panel of each column names its bars
+        axes[r, c].set_xticks(xs, [f"{m} / {p}" for m, p in rows], rotation=90, fontsize=6)
     for ax in axes[:, 0]:
         ax.set_ylabel("success rate (%)")
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[i]) for i in range(len(rows))]
     labels = [f"{m} / {p}" for m, p in rows]
+    handles.append(plt.Line2D([], [], color="black", lw=0.8, marker="_", ms=6))
+    labels.append("error bar: task, 95 % Wilson interval over its episodes (seeds pooled);\n"
+                  "average, std over seeds")
+    if several_seeds:
+        handles.append(plt.Line2D([], [], color="black", marker="o", ls="", ms=3))
+        labels.append("one seed's rate")
     if reference:
         handles.append(plt.Line2D([], [], color="black", lw=1.6))
         labels.append(f"{reference_label} (published)")
+    handles.append(plt.Rectangle((0, 0), 1, 1, facecolor="0.7", hatch="//", edgecolor="white"))
+    labels.append('average over only some tasks ("k/n");\n"†": tasks with different seeds; "n/a": not run')
     return _finish(plt, fig, handles, labels, title, path)
 
 
@@ -119,47 +178,66 @@ def plot_detection(results: list[dict], path: Path, title: str) -> Path | None:
     panels = _with_traces(results)
     if not panels:
         return None
+    all_seeds: dict[tuple[str, str], set[int]] = {}
+    for r in results:
+        all_seeds.setdefault((r["task"], r["method"]), set()).add(r["seed"])
     plt = _pyplot()
     n_rows, n_cols = _grid(len(panels))
     fig, axes = plt.subplots(n_rows, n_cols, figsize=(1.0 + 3.0 * n_cols, 0.8 + 2.4 * n_rows), squeeze=False)
+    from matplotlib.ticker import MaxNLocator
+
     floor = 1e-3  # a log axis: statistics at or below zero are drawn at this floor
+    seed_styles = ["-", "--", ":"]  # a run's traces and its tau share a line style (seeds in order)
     for ax, ((task, method), runs) in zip(axes.flat, panels.items()):
-        counts = {"id": 0, "ok": 0, "failed": 0}
+        id_count, disturbed = 0, {}  # disturbed: protocol -> [succeeded, failed]
         visible = []
         for k, run in enumerate(runs):
-            for protocol in run["protocols"].values():
+            style = seed_styles[k % len(seed_styles)]
+            for name, protocol in run["protocols"].items():
                 for ep in protocol.get("traces") or []:
                     ys = [float("nan") if v is None else max(v, floor) for v in ep["score"]]
-                    disturbed = ep["first_visible"] is not None
-                    if not disturbed:
-                        colour, kind, z = "0.6", "id", 1
+                    if ep["first_visible"] is None:
+                        colour, z = "0.6", 1
+                        id_count += 1
                     else:
-                        colour, kind, z = ("tab:green", "ok", 2) if ep["success"] else ("tab:red", "failed", 3)
+                        colour, z = ("tab:green", 2) if ep["success"] else ("tab:red", 3)
+                        disturbed.setdefault(name, [0, 0])[0 if ep["success"] else 1] += 1
                         visible.append(ep["first_visible"])
-                    counts[kind] += 1
-                    ax.plot(range(len(ys)), ys, color=colour, lw=0.7, alpha=0.6, zorder=z)
+                    ax.plot(range(len(ys)), ys, color=colour, lw=0.7, alpha=0.6, zorder=z, ls=style)
                     switch = ep["mode"].find("1")
-                    if disturbed and switch >= 0 and switch < len(ys) and not math.isnan(ys[switch]):
-                        ax.plot(switch, ys[switch], "o", ms=2.5, color=colour, zorder=z + 1)
+                    if 0 <= switch < len(ys) and not math.isnan(ys[switch]):
+                        # a switch in an ID episode is a false alarm: a cross
+                        marker = "o" if ep["first_visible"] is not None else "x"
+                        ax.plot(switch, ys[switch], marker, ms=3, color=colour if marker == "o" else "0.2",
+                                zorder=z + 1)
             taus = {p["tau"] for p in run["protocols"].values() if p.get("traces") and p.get("tau") is not None}
             for tau in taus:  # one calibration per run: its protocols share it
-                ax.axhline(max(floor, tau), color="black", ls="--", lw=0.9, alpha=1.0 if k == 0 else 0.6)
+                ax.axhline(max(floor, tau), color="black", ls="-." if style == "-" else style, lw=0.9)
         if visible:
-            ax.axvline(float(np.median(visible)), color="black", ls=":", lw=0.9)
+            ax.axvline(float(np.median(visible)), color="tab:blue", ls=":", lw=1.0)
         ax.set_yscale("log")
-        seeds = ",".join(str(r["seed"]) for r in runs)
-        ax.set_title(f"{task} / {method} (seed {seeds})\n{counts['id']} ID, {counts['ok']} disturbed ok, "
-                     f"{counts['failed']} failed", fontsize=8)
-        ax.tick_params(labelsize=7)
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        seeds = ", ".join(f"seed {r['seed']}" + (f" {seed_styles[k % 3]}" if len(runs) > 1 else "")
+                          for k, r in enumerate(runs))
+        untraced = sorted(all_seeds.get((task, method), set()) - {r["seed"] for r in runs})
+        if untraced:
+            seeds += f"; seed {', '.join(map(str, untraced))}: no traces"
+        kinds = ", ".join(f"{name} {ok}/{ok + bad} ok" for name, (ok, bad) in disturbed.items())
+        ax.set_title(f"{task} / {method} ({seeds})\n{id_count} ID; {kinds or 'none disturbed'}", fontsize=8)
+        ax.tick_params(labelsize=8)
     for ax in axes.flat[len(panels):]:
         ax.axis("off")
     for ax in axes[-1, :]:
         ax.set_xlabel("control cycle (action chunk)", fontsize=8)
     for ax in axes[:, 0]:
-        ax.set_ylabel("detector statistic", fontsize=8)
+        ax.set_ylabel("D_R-I statistic (log axis)", fontsize=8)
     handles = [plt.Line2D([], [], color="0.6"), plt.Line2D([], [], color="tab:green"),
-               plt.Line2D([], [], color="tab:red"), plt.Line2D([], [], color="black", marker="o", ls="", ms=3),
-               plt.Line2D([], [], color="black", ls="--"), plt.Line2D([], [], color="black", ls=":")]
-    labels = ["in distribution (id_ddp)", "disturbed, succeeded", "disturbed, failed", "switch to OOD",
-              "tau (one per seed)", "first visible (median)"]
+               plt.Line2D([], [], color="tab:red"), plt.Line2D([], [], color="tab:green", marker="o", ls="", ms=3),
+               plt.Line2D([], [], color="0.2", marker="x", ls="", ms=3),
+               plt.Line2D([], [], color="black", ls="-."), plt.Line2D([], [], color="tab:blue", ls=":"),
+               plt.Line2D([], [], ls="")]
+    labels = ["in distribution (id_ddp)", "disturbed, succeeded", "disturbed, failed",
+              "switch to OOD (disturbed episode)", "switch to OOD in an ID episode (false alarm)",
+              "tau: dash-dot for the first seed, its\ntraces solid; later seeds dashed / dotted",
+              "first visible chunk (median)", f"(statistics <= {floor:g} are drawn at {floor:g})"]
     return _finish(plt, fig, handles, labels, title, path)
