@@ -23,14 +23,24 @@ def plot_success(report: dict, path: Path) -> Path | None:
     names = [n for n in report["protocols"] if report["protocols"][n]["success_rate"] is not None]
     if not names:
         return None
-    rates = [100 * report["protocols"][n]["success_rate"] for n in names]
+    from ddp.suite.report import wilson
+
+    results = [report["protocols"][n] for n in names]
+    rates = [100 * r["success_rate"] for r in results]
+    # the 95 % Wilson interval of each rate over its episodes (one seed: the episodes are the only spread)
+    bounds = [wilson(r["successes"], r["episodes"]) for r in results]
+    lower = [max(0.0, rate - 100 * lo) for rate, (lo, _) in zip(rates, bounds)]
+    upper = [max(0.0, 100 * hi - rate) for rate, (_, hi) in zip(rates, bounds)]
     fig, ax = plt.subplots(figsize=(1.2 + 1.1 * len(names), 3.2))
-    bars = ax.bar(names, rates, color="#4c72b0")
-    for bar, r in zip(bars, rates):
-        ax.text(bar.get_x() + bar.get_width() / 2, r + 1, percent(r / 100), ha="center", va="bottom", fontsize=8)
-    ax.set_ylim(0, 110)
+    bars = ax.bar(names, rates, color="#4c72b0", yerr=[lower, upper], capsize=3, error_kw={"lw": 0.9})
+    for bar, r, res, up in zip(bars, rates, results, upper):
+        ax.text(bar.get_x() + bar.get_width() / 2, min(r + up + 1, 104), f"{percent(r / 100)} ({res['successes']}/"
+                f"{res['episodes']})", ha="center", va="bottom", fontsize=7)
+    ax.set_ylim(0, 112)
+    ax.set_yticks(range(0, 101, 20))
     ax.set_ylabel("success rate (%)")
-    ax.set_title(f"{report['recipe']}: {report['episodes']} episodes per protocol")
+    ax.set_title(f"{report['recipe']}: {report['episodes']} episodes per protocol\n(error bars: 95 % Wilson interval)",
+                 fontsize=9)
     ax.tick_params(axis="x", labelrotation=30)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -59,7 +69,7 @@ def plot_discrepancy(episode: dict, tau: float | None, title: str, path: Path) -
         ax.axvline(visible, color="black", ls=":", lw=1, label="first visible")
     ax.set_xlabel("control cycle (action chunk)")
     ax.set_ylabel(label)
-    ax.set_title(title + " (shaded: OOD mode)")
+    ax.set_title(title + "\nshaded: OOD mode", fontsize=8)
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -79,7 +89,10 @@ def plot_report(report: dict, out_dir: Path) -> list[Path]:
                if any(not math.isnan(v) for v in e.get("score", []) or e.get("discrepancy", []))]
         if eps and "detection" in res:
             disturbed = [e for e in eps if any(e.get("disturbed") or [])]
-            ep = (disturbed or eps)[0]
-            paths.append(plot_discrepancy(ep, res.get("tau"), f"{report['recipe']} / {name}, seed {ep['seed']}",
+            shown = disturbed or eps
+            ep = shown[0]
+            which = f"the first of {len(shown)} {'disturbed ' if disturbed else ''}episodes"
+            paths.append(plot_discrepancy(ep, res.get("tau"), f"{report['recipe']} / {name}, seed {ep['seed']} "
+                                          f"({which})",
                                           out_dir / f"discrepancy_{name}.png"))
     return paths

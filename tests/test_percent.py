@@ -40,3 +40,23 @@ def test_a_task_bar_is_the_wilson_interval_of_its_pooled_episodes_whatever_its_s
     assert _errors(two_seeds) == (pytest.approx(85.0), pytest.approx(85 - 100 * lo), pytest.approx(100 * hi - 85))
     lo, hi = wilson(0, 20)
     assert _errors({"mean": 0.0, "episodes": 20, "successes": 0, "wilson95": [lo, hi]}) == (0.0, 0.0, pytest.approx(100 * hi))
+
+
+def test_an_evaluation_success_plot_carries_each_rate_s_wilson_interval(tmp_path, monkeypatch):
+    """success.png: one seed's episodes are the only spread there is; the bars carry their 95 % interval."""
+    import matplotlib.axes
+
+    from ddp.plots import plot_success
+    from ddp.suite.report import wilson
+
+    seen, real = {}, matplotlib.axes.Axes.bar
+    monkeypatch.setattr(matplotlib.axes.Axes, "bar", lambda self, *a, **k: seen.update(k) or real(self, *a, **k))
+    report = {"recipe": "r", "episodes": 10, "protocols": {
+        "id": {"success_rate": 1.0, "successes": 10, "episodes": 10},
+        "ood_ddp": {"success_rate": 0.7, "successes": 7, "episodes": 10},
+        "real": {"success_rate": None, "successes": None, "episodes": 10}}}  # not judged: no bar
+    assert plot_success(report, tmp_path / "success.png").stat().st_size > 0
+    (lo1, hi1), (lo7, hi7) = wilson(10, 10), wilson(7, 10)
+    lower, upper = seen["yerr"]
+    assert lower == [pytest.approx(100 - 100 * lo1), pytest.approx(70 - 100 * lo7)]
+    assert upper == [pytest.approx(max(0.0, 100 * hi1 - 100)), pytest.approx(100 * hi7 - 70)]
