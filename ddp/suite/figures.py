@@ -39,21 +39,22 @@ def _errors(cell: dict | None) -> tuple[float, float | None, float | None]:
 
     A task's cell (successes of episodes) gets the 95 % Wilson interval of all its episodes pooled over seeds:
     with two or three seeds a std says little, and one kind of bar for every task keeps methods with one
-    and with several seeds comparable. An average gets the std of its per-seed averages, clipped to 0-100 %."""
+    and with several seeds comparable (the spread between seeds shows as their dots). Seeds with unequal
+    episode counts, and averages, get the std of their per-seed rates, clipped to 0-100 %."""
     if cell is None:
         return float("nan"), None, None
     from ddp.suite.report import wilson  # (the report module imports this one)
 
     mean = 100 * cell["mean"]
-    if cell.get("episodes"):
-        lo, hi = wilson(cell["successes"], cell["episodes"])
+    lo = hi = None
+    if cell.get("episodes") and cell.get("successes") is not None:
+        # the pooled interval sits around the bar's top (the seeds' mean rate) only where that is the pooled
+        # rate: equal episodes per seed; with unequal ones the std below
+        if abs(cell["successes"] / cell["episodes"] - cell["mean"]) < 1e-9:
+            lo, hi = wilson(cell["successes"], cell["episodes"])
     elif "wilson95" in cell:
         lo, hi = cell["wilson95"]
-    else:
-        lo = hi = None
-    if lo is not None:
-        # around the bar's top (the seeds' mean rate: the pooled one with equal episodes per seed), clipped at 0
-        # where the interval's end rounds to a hair inside it
+    if lo is not None:  # clipped at 0 where the interval's end rounds to a hair inside the rate
         return mean, max(0.0, mean - 100 * lo), max(0.0, 100 * hi - mean)
     if "std" in cell:
         std = 100 * cell["std"]
@@ -123,7 +124,7 @@ def plot_table(table: dict, columns: list[str], path: Path, title: str, referenc
                 ax.bar(i, mean, 0.8, color=colours[i], hatch="//" if cell.get("missing_tasks") else None,
                        edgecolor="white" if cell.get("missing_tasks") else None, lw=0, **bars)
                 per_seed = cell.get("per_seed") or []
-                if len(per_seed) > 1:
+                if len(per_seed) > 1 and not cell.get("uneven_seeds"):  # (there: only the seeds all tasks share)
                     several_seeds = True
                     ax.plot([i] * len(per_seed), [100 * v for v in per_seed], "o", ms=2, color="black", zorder=4)
             note = _bar_note(cell)
@@ -135,6 +136,7 @@ def plot_table(table: dict, columns: list[str], path: Path, title: str, referenc
                 ax.plot([i - 0.4, i + 0.4], [100 * ref] * 2, color="black", lw=1.6, clip_on=False, zorder=5)
         ax.set_title(column.replace("avg:", "average, "), fontsize=9)
         ax.set_xticks(xs, [])
+        ax.set_xlim(-0.6, len(rows) - 0.4)  # the same slots in every panel, whichever cells were run
         ax.set_ylim(-4, 105)  # 0 % bars and published zeros stay visible above the frame
         ax.set_yticks(range(0, 101, 20))
         ax.axhline(0, color="0.4", lw=0.6)
@@ -162,6 +164,10 @@ def plot_table(table: dict, columns: list[str], path: Path, title: str, referenc
     return _finish(plt, fig, handles, labels, title, path)
 
 
+#: how the detection figure's titles name each seed's line style
+STYLE_NAMES = ["solid", "dashed", "dotted", "dash-dot-dot", "long dash"]
+
+
 def _with_traces(results: list[dict]) -> dict[tuple[str, str], list[dict]]:
     """(task, method) -> the runs (sorted by seed) with at least one protocol that stored traces."""
     out: dict[tuple[str, str], list[dict]] = {}
@@ -187,7 +193,8 @@ def plot_detection(results: list[dict], path: Path, title: str) -> Path | None:
     from matplotlib.ticker import MaxNLocator
 
     floor = 1e-3  # a log axis: statistics at or below zero are drawn at this floor
-    seed_styles = ["-", "--", ":"]  # a run's traces and its tau share a line style (seeds in order)
+    # a run's traces and its tau share a line style (seeds in order; the first seed's tau dash-dot)
+    seed_styles = ["-", "--", ":", (0, (5, 1, 1, 1, 1, 1)), (0, (8, 2))]
     for ax, ((task, method), runs) in zip(axes.flat, panels.items()):
         id_count, disturbed = 0, {}  # disturbed: protocol -> [succeeded, failed]
         visible = []
@@ -204,7 +211,7 @@ def plot_detection(results: list[dict], path: Path, title: str) -> Path | None:
                         disturbed.setdefault(name, [0, 0])[0 if ep["success"] else 1] += 1
                         visible.append(ep["first_visible"])
                     ax.plot(range(len(ys)), ys, color=colour, lw=0.7, alpha=0.6, zorder=z, ls=style)
-                    switch = ep["mode"].find("1")
+                    switch = (ep.get("mode") or "").find("1")
                     if 0 <= switch < len(ys) and not math.isnan(ys[switch]):
                         # a switch in an ID episode is a false alarm: a cross
                         marker = "o" if ep["first_visible"] is not None else "x"
@@ -217,8 +224,8 @@ def plot_detection(results: list[dict], path: Path, title: str) -> Path | None:
             ax.axvline(float(np.median(visible)), color="tab:blue", ls=":", lw=1.0)
         ax.set_yscale("log")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-        seeds = ", ".join(f"seed {r['seed']}" + (f" {seed_styles[k % 3]}" if len(runs) > 1 else "")
-                          for k, r in enumerate(runs))
+        seeds = ", ".join(f"seed {r['seed']}" + (f" {STYLE_NAMES[k % len(STYLE_NAMES)]}" if len(runs) > 1 else "")
+                          for k, r in enumerate(runs))  # (a sixth seed repeats the first style)
         untraced = sorted(all_seeds.get((task, method), set()) - {r["seed"] for r in runs})
         if untraced:
             seeds += f"; seed {', '.join(map(str, untraced))}: no traces"
@@ -236,8 +243,8 @@ def plot_detection(results: list[dict], path: Path, title: str) -> Path | None:
                plt.Line2D([], [], color="0.2", marker="x", ls="", ms=3),
                plt.Line2D([], [], color="black", ls="-."), plt.Line2D([], [], color="tab:blue", ls=":"),
                plt.Line2D([], [], ls="")]
-    labels = ["in distribution (id_ddp)", "disturbed, succeeded", "disturbed, failed",
+    labels = ["undisturbed (id_ddp, or the disturbance never showed)", "disturbed, succeeded", "disturbed, failed",
               "switch to OOD (disturbed episode)", "switch to OOD in an ID episode (false alarm)",
-              "tau: dash-dot for the first seed, its\ntraces solid; later seeds dashed / dotted",
+              "tau: dash-dot for the first seed (its traces\nsolid); later seeds' tau in their traces' style",
               "first visible chunk (median)", f"(statistics <= {floor:g} are drawn at {floor:g})"]
     return _finish(plt, fig, handles, labels, title, path)
