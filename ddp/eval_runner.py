@@ -146,6 +146,7 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
     first ``video.episodes`` episodes. ``record_latents`` keeps each chunk's real and forecast latent
     windows (``latent_real`` / ``latent_pred`` arrays [chunks, M, D]) for detector calibration.
     """
+    import torch
     from torchrl.collectors import Collector
     from torchrl.envs import ParallelEnv, SerialEnv
 
@@ -161,6 +162,10 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
                                                             episodes=min(video.episodes, quota[i]))
         return env_factory(exp, first, overrides, vid)
 
+    # torchrl's batched envs set torch's thread count in this process (ParallelEnv lowers it while its workers
+    # run; closing either raises it to min(the count at torchrl's import, count + envs)): restored below, or a
+    # suite run with --threads 1 would train and evaluate on more OpenMP threads than it was given
+    threads = torch.get_num_threads()
     if num_envs == 1:
         env = factory(0)()
     else:
@@ -195,6 +200,8 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
         bar.close()
         collector.shutdown()
         env.close(raise_if_closed=False)
+        if torch.get_num_threads() != threads:
+            torch.set_num_threads(threads)
         wait = getattr(controller, "wait_forecast", None)
         if wait is not None:  # the last cycle's background forecast: nothing may run on the model after us
             wait()

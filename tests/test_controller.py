@@ -307,6 +307,21 @@ def test_evaluate_videos_and_parallel_envs_match_serial(exp, tmp_path):
         assert got == [e[key] for e in serial["protocols"]["ood_ddp"]["per_episode"]], key
 
 
+def test_an_evaluation_leaves_torch_s_thread_count_as_it_found_it(exp, tmp_path):
+    """torchrl's batched envs set torch's thread count when they close (SerialEnv: to min(the count at import,
+    count + envs)): after one evaluation a suite run with --threads 1 trained and evaluated on two OpenMP
+    threads for the rest of its process, beside another run on a 2-core machine (its evaluations 10-16x slower)."""
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        exp.evaluate(["id"], episodes=2, num_envs=2, output_dir=tmp_path / "s", progress=False)
+        assert torch.get_num_threads() == 1
+        exp.evaluate(["id"], episodes=2, num_envs=2, output_dir=tmp_path / "p", progress=False, parallel=True)
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_env_section_oracle_tracking_turns_the_controllers_tracker_off(exp, monkeypatch):
     """A recipe whose env section sets oracle_tracking: the env tracks in ood_tracking and ood_ddp_oracle,
     so the controller must not shift the end-effector too (it read only the protocol's overrides)."""
