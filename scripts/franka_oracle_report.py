@@ -31,6 +31,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from ddp.argtypes import positive_int  # noqa: E402
+
 SETTINGS = {
     "ID": ({}, False),
     "disp": ({"displacement": True}, False),
@@ -54,16 +56,9 @@ def run(env, oracle, seed: int) -> int | None:
 TASKS = ("stack", "pour", "press")
 
 
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1; got {text}")
-    return value
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=_positive, default=20, help="seeded episodes per task and setting")
+    parser.add_argument("--episodes", type=positive_int, default=20, help="seeded episodes per task and setting")
     parser.add_argument("--first-seed", type=int, default=0, help="the first episode's seed (default 0)")
     parser.add_argument("--tasks", nargs="*", default=list(TASKS), choices=list(TASKS))
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))

@@ -32,22 +32,16 @@ import warnings
 
 import numpy as np
 
+from ddp.argtypes import positive_int
 from ddp.percent import percent
-
-
-def _positive(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number >= 1; got {text}")
-    return value
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--episodes", type=_positive, default=20,
+    parser.add_argument("--episodes", type=positive_int, default=20,
                         help="seeded episodes per task and setting (seeds 0..N-1)")
     parser.add_argument("--tasks", nargs="*", default=None, help="subset of the ten tasks (default: all)")
-    parser.add_argument("--max-steps", type=_positive, default=200, help="episode length")
+    parser.add_argument("--max-steps", type=positive_int, default=200, help="episode length")
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore", message="Constant")  # metaworld's policies warn about their own gains
 

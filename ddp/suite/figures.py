@@ -65,16 +65,12 @@ def _errors(cell: dict | None) -> tuple[float, float | None, float | None]:
 def _bar_note(cell: dict | None) -> str:
     """What a bar cannot show: "n/a" (not run), "k/n" (an average over k of its n tasks), "†" (an average
     whose tasks have different seeds)."""
+    from ddp.suite.report import _coverage  # (imported here: the report module imports this one)
+
     if cell is None:
         return "n/a"
     note = _coverage(cell) if cell.get("missing_tasks") else ""
     return note + ("†" if cell.get("uneven_seeds") else "")
-
-
-def _coverage(cell: dict) -> str:
-    from ddp.suite.report import _coverage as coverage  # (the report module imports this one)
-
-    return coverage(cell)
 
 
 def _colours(plt, rows) -> list:
@@ -143,8 +139,8 @@ def plot_table(table: dict, columns: list[str], path: Path, title: str, referenc
         ax.grid(axis="y", lw=0.3, alpha=0.5)
     for ax in axes.flat[len(columns):]:
         ax.axis("off")
-    last = {c: r for r, c in ((r, c) for r in range(n_rows) for c in range(n_cols) if r * n_cols + c < len(columns))}
-    for c, r in last.items():  # the bottom panel of each column names its bars
+    for c in range(min(n_cols, len(columns))):  # the bottom panel of each column names its bars
+        r = (len(columns) - 1 - c) // n_cols
         axes[r, c].set_xticks(xs, [f"{m} / {p}" for m, p in rows], rotation=90, fontsize=6)
     for ax in axes[:, 0]:
         ax.set_ylabel("success rate (%)")
