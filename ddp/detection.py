@@ -418,7 +418,7 @@ def plot_detect(rep: dict, score: str, path) -> None:
     """The statistic of one score: the ID test band (min-max), disturbed episodes as lines, tau dashed."""
     from matplotlib.ticker import MaxNLocator
 
-    from ddp.plots import _pyplot
+    from ddp.plots import _pyplot, save_figure
 
     plt = _pyplot()
     tr = rep["traces"][score]
@@ -449,8 +449,7 @@ def plot_detect(rep: dict, score: str, path) -> None:
         ax.set_title(f"{rep['recipe']}: {score} under {name}")
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(plt, fig, path, dpi=120)
 
 
 def summary_json(rep: dict) -> dict:

@@ -66,15 +66,19 @@ def env_overrides(exp, protocol: EvalProtocol, max_steps: int | None, extra: dic
     a refused value is reported under ``extra_source`` when there are extras, else under ``eval.env``."""
     fields = {f.name for f in dataclasses.fields(exp.parts["env"].config)}
     over = dict(exp.recipe.eval.env)
+    # the recipe's own options first, under their key (a typo there is the recipe's, with the closest name)
+    check_env_options(exp, over, source=exp.source, key="eval.env", values=False)
     over.update(protocol.env)
     over.update({k: v for k, v in protocol.env_if_supported.items() if k in fields})
     if protocol.env_tracking and exp.recipe.eval.env_oracle_tracking:
         over["oracle_tracking"] = True
     if protocol.occlusion:
         over.update(occlusion_chunk=exp.recipe.eval.occlusion_chunk, occlusion_chunks=exp.recipe.eval.occlusion_chunks)
-    if max_steps is not None:
-        over["max_episode_steps"] = max_steps
     check_env_options(exp, over, source=exp.source, key="env", needed_by="this protocol", values=False)
+    if max_steps is not None:
+        check_env_options(exp, {"max_episode_steps": max_steps}, source=exp.source, key="eval.max_steps",
+                          needed_by="eval.max_steps", values=False)
+        over["max_episode_steps"] = max_steps
     if extra:
         check_env_options(exp, extra, source=extra_source, values=False)
         over.update(extra)
@@ -119,6 +123,33 @@ def env_factory(exp, seed: int, overrides: dict | None = None, video: VideoSetti
 
 def make_chunked_env(exp, seed: int, overrides: dict | None = None, video: VideoSettings | None = None) -> ChunkedEnv:
     return env_factory(exp, seed, overrides, video)()
+
+
+def judges_success(exp, overrides: dict | None = None) -> bool:
+    """Whether the env the episodes run in (the recipe's config with ``overrides``: ``eval.env``, a protocol's,
+    ``--env``) can tell a success (the env contract's optional ``judges_success()``; a real robot cannot: a
+    person judges its episodes, and evaluations report none)."""
+    cfg = dataclasses.replace(exp.parts["env"].config, **(overrides or {}))
+    judges = getattr(cfg, "judges_success", None)
+    return not callable(judges) or bool(judges())
+
+
+def check_video_camera(exp, overrides: dict, camera: str | None) -> None:
+    """A video camera the env does not have, refused before any rollout under ``eval.video_camera`` (it was a
+    traceback at the first recorded frame, after the detector's calibration). Checked by rendering one frame
+    of a reset env; only where the env judges success itself (a simulator: a real robot's reset moves the arm
+    and waits for its operator)."""
+    if camera is None or not judges_success(exp, overrides):
+        return
+    env = make_chunked_env(exp, seed=0, overrides=overrides)
+    try:
+        env.reset()
+        try:
+            env.base.render_rgb(16, 16, camera=camera)
+        except (ValueError, KeyError) as err:
+            raise RecipeError(str(err).strip().splitlines()[0], source=exp.source, key="eval.video_camera") from None
+    finally:
+        env.close(raise_if_closed=False)
 
 
 def _chunks_per_episode(exp, overrides: dict) -> int:
@@ -166,22 +197,22 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
     # run; closing either raises it to min(the count at torchrl's import, count + envs)): restored below, or a
     # suite run with --threads 1 would train and evaluate on more OpenMP threads than it was given
     threads = torch.get_num_threads()
-    if num_envs == 1:
-        env = factory(0)()
-    else:
-        batched = ParallelEnv if parallel else SerialEnv
-        env = batched(num_envs, [factory(i) for i in range(num_envs)])
-    controller.reset()
-    collector = Collector(
-        env, controller, frames_per_batch=chunks * num_envs, total_frames=chunks * num_envs * max(quota),
-        reset_when_done=True, trust_policy=True, auto_register_policy_transforms=False,
-    )
     results: list[dict] = []
     done = [0] * num_envs  # episodes kept per env (one per env and batch; an env past its share runs idle)
-    bar = tqdm(total=episodes, desc=desc, disable=not progress, unit="ep")
-    judges = getattr(exp.parts["env"].config, "judges_success", None)
-    judged = not callable(judges) or judges()  # a real robot's env cannot: a person judges its episodes
-    try:
+    judged = judges_success(exp, overrides)  # a real robot's env cannot: a person judges its episodes
+    env = collector = bar = None
+    try:  # from the env's construction on: the collector resets the envs when it is built, which may fail
+        if num_envs == 1:
+            env = factory(0)()
+        else:
+            batched = ParallelEnv if parallel else SerialEnv
+            env = batched(num_envs, [factory(i) for i in range(num_envs)])
+        controller.reset()
+        collector = Collector(
+            env, controller, frames_per_batch=chunks * num_envs, total_frames=chunks * num_envs * max(quota),
+            reset_when_done=True, trust_policy=True, auto_register_policy_transforms=False,
+        )
+        bar = tqdm(total=episodes, desc=desc, disable=not progress, unit="ep")
         for batch in collector:
             batch = batch.reshape(num_envs, chunks) if batch.batch_dims == 1 else batch
             for i in range(num_envs):
@@ -197,9 +228,12 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
             if len(results) >= episodes:
                 break
     finally:
-        bar.close()
-        collector.shutdown()
-        env.close(raise_if_closed=False)
+        if bar is not None:
+            bar.close()
+        if collector is not None:
+            collector.shutdown()
+        if env is not None:
+            env.close(raise_if_closed=False)
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
         wait = getattr(controller, "wait_forecast", None)

@@ -21,7 +21,7 @@ from ddp.errors import DDPError, RecipeError
 from ddp.eval_report import markdown_table, protocol_result, write_report  # noqa: F401 (re-exported)
 from ddp.eval_runner import (  # noqa: F401 (re-exported: the runner's public names)
     ChunkedEnvFactory, calibrate_detector, calibration_env, calibration_episodes, env_factory, env_overrides, make_chunked_env,
-    evaluation_blocks, rollout_episodes,
+    evaluation_blocks, rollout_episodes, check_video_camera,
 )
 from ddp.protocols.base import check_protocols, check_protocols_for_model, get_protocol
 from ddp.video import VideoSettings
@@ -103,7 +103,10 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
         env_tracks = overrides.get("oracle_tracking", (exp.resolved.get("env") or {}).get("oracle_tracking", False))
         tracker = protocol.tracker and not env_tracks
         plan.append((name, protocol, overrides,
-                     exp.make_controller(detector=protocol.detector, imagine=protocol.imagine, tracker=tracker)))
+                     exp.make_controller(detector=protocol.detector, imagine=protocol.imagine, tracker=tracker,
+                                         env=overrides)))
+    if s.video:
+        check_video_camera(exp, plan[0][2], cfg.video_camera)
     for name, protocol, overrides, ctrl in plan:
         section = _detector_section(exp, protocol)
         if not isinstance(ctrl.detector, Calibratable) and callable(getattr(ctrl.detector, "calibrate", None)):

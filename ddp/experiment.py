@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 from pathlib import Path
@@ -119,11 +120,12 @@ class Experiment:
         self.checkpoint_weights = "raw" if weights is state["model"] else "ema"  # what an evaluation reports
         return self
 
-    def _check_simulator_truth(self, env_part, module, key: str) -> None:
+    def _check_simulator_truth(self, env_config, module, key: str) -> None:
         """A part that reads the simulator's truth (a ``("privileged", ...)`` key: object displacements, the
-        occlusion flag) refused where the env has none (its config's ``simulator_truth()`` is False: a real
-        robot, where those keys read zero and the part would silently never fire)."""
-        truth = getattr(env_part.config, "simulator_truth", None) if env_part is not None else None
+        occlusion flag) refused where the env (``env_config``, the one the episodes run in) has none (its
+        ``simulator_truth()`` is False: a real robot, where those keys read zero and the part would silently
+        never fire)."""
+        truth = getattr(env_config, "simulator_truth", None)
         if module is None or not callable(truth) or truth():
             return
         reads = [k for k in getattr(module, "in_keys", []) if isinstance(k, tuple) and k[:1] == ("privileged",)]
@@ -136,12 +138,14 @@ class Experiment:
 
     def make_controller(self, *, detector: dict | None = None, imagine: bool | None = None,
                         track: bool | None = None, tracker: bool = True, seed: int | None = None,
-                        forecast_every_cycle: bool | None = None, async_forecast: bool | None = None):
+                        forecast_every_cycle: bool | None = None, async_forecast: bool | None = None,
+                        env: dict | None = None):
         """The DDP controller (Algorithm 2) around ``model`` from the recipe's ``controller`` section.
 
         ``detector`` replaces the recipe's detector section (e.g. ``{"name": "never"}``); ``imagine``
         / ``track`` / ``forecast_every_cycle`` / ``async_forecast`` override the recipe's flags; ``tracker=False`` drops
-        tracking and recovery.
+        tracking and recovery. ``env``: the env overrides the controller will run under (``eval.env``, a
+        protocol's, ``--env``): parts that read the simulator's truth are checked against that env.
         """
         from ddp.inference import DDPController, Subtask
         from ddp.schema import resolve_part
@@ -164,8 +168,11 @@ class Experiment:
         ]
         det = det_part.build()
         trk = trk_part.build() if trk_part is not None else None
-        self._check_simulator_truth(env_part, det, "controller.detector" if detector is None else "eval.protocols")
-        self._check_simulator_truth(env_part, trk, "controller.tracker")
+        env_config = env_part.config if env_part is not None else None
+        if env_config is not None and env:
+            env_config = dataclasses.replace(env_config, **env)
+        self._check_simulator_truth(env_config, det, "controller.detector" if detector is None else "eval.protocols")
+        self._check_simulator_truth(env_config, trk, "controller.tracker")
         return DDPController(
             self.model.eval(),
             detector=det,

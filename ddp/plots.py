@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ddp.atomic_file import atomic_write
 from ddp.percent import percent
 
 
@@ -15,6 +16,18 @@ def _pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def save_figure(plt, fig, path: str | Path, **savefig) -> Path:
+    """Write ``fig`` atomically (a killed process leaves the earlier file or none, never half a PNG) and close
+    it whether or not the write succeeds; ``savefig``: matplotlib's options (dpi, bbox_inches)."""
+    path = Path(path)
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    try:
+        atomic_write(path, lambda f: fig.savefig(f, format=fmt, **savefig))
+    finally:
+        plt.close(fig)
+    return path
 
 
 def plot_success(report: dict, path: Path) -> Path | None:
@@ -43,9 +56,7 @@ def plot_success(report: dict, path: Path) -> Path | None:
                  fontsize=9)
     ax.tick_params(axis="x", labelrotation=30)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(plt, fig, path, dpi=120)
 
 
 def plot_discrepancy(episode: dict, tau: float | None, title: str, path: Path) -> Path:
@@ -72,9 +83,7 @@ def plot_discrepancy(episode: dict, tau: float | None, title: str, path: Path) -
     ax.set_title(title + "\nshaded: OOD mode", fontsize=8)
     ax.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(plt, fig, path, dpi=120)
 
 
 def plot_report(report: dict, out_dir: Path) -> list[Path]:
@@ -86,7 +95,7 @@ def plot_report(report: dict, out_dir: Path) -> list[Path]:
     paths = [p for p in [plot_success(report, out_dir / "success.png")] if p is not None]
     for name, res in report["protocols"].items():
         eps = [e for e in res["per_episode"]
-               if any(not math.isnan(v) for v in e.get("score", []) or e.get("discrepancy", []))]
+               if any(not math.isnan(v) for v in (*e.get("score", []), *e.get("discrepancy", [])))]
         if eps and "detection" in res:
             disturbed = [e for e in eps if any(e.get("disturbed") or [])]
             shown = disturbed or eps

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ddp.atomic_file import atomic_write
+
 __all__ = ["ChunkLabel", "EpisodeRecorder", "VideoSettings", "annotate", "contact_sheet", "write_video"]
 
 ID_COLOUR = (40, 170, 70)
@@ -127,16 +129,18 @@ def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 20) -> Pa
     except ImportError:
         from PIL import Image
 
-        gif = path.with_suffix(".gif")
         images = [Image.fromarray(f) for f in frames]
-        images[0].save(gif, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
-        return gif
+        return atomic_write(path.with_suffix(".gif"), lambda f: images[0].save(
+            f, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0))
     mp4 = path.with_suffix(".mp4")
-    tmp = mp4.with_name(f".{mp4.stem}.tmp.mp4")
-    with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1) as writer:
-        for f in frames:
-            writer.append_data(f)
-    tmp.replace(mp4)
+    tmp = mp4.with_name(f".{mp4.stem}.tmp.mp4")  # ffmpeg writes to a path: renamed once whole
+    try:
+        with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1) as writer:
+            for f in frames:
+                writer.append_data(f)
+        tmp.replace(mp4)
+    finally:
+        tmp.unlink(missing_ok=True)  # a writer that failed part-way leaves no hidden half-file behind
     return mp4
 
 
@@ -156,10 +160,7 @@ def contact_sheet(frames: list[np.ndarray], path: str | Path, columns: int = 8, 
     sheet = Image.new("RGB", (cols * width, rows * h), (255, 255, 255))
     for i, t in enumerate(tiles):
         sheet.paste(t, ((i % cols) * width, (i // cols) * h))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    sheet.save(path, optimize=True)
-    return path
+    return atomic_write(path, lambda f: sheet.save(f, format="PNG", optimize=True))
 
 
 class EpisodeRecorder:

@@ -322,6 +322,40 @@ def test_an_evaluation_leaves_torch_s_thread_count_as_it_found_it(exp, tmp_path)
         torch.set_num_threads(before)
 
 
+def test_an_env_that_fails_its_first_reset_is_closed_and_the_thread_count_kept(exp, tmp_path, monkeypatch):
+    """The collector resets the envs when it is built: an env failing there (a renderer, a robot that does not
+    answer) left the batched env open (closed later by the garbage collector, which then raised torch's thread
+    count) because the env and collector were made before the ``try`` that closes them."""
+    import gc
+
+    from torchrl.envs import SerialEnv
+
+    from ddp.envs.chunked import ChunkedEnv
+
+    closed = []
+    close = SerialEnv.close
+
+    def record(self, *args, **kwargs):
+        closed.append(self)
+        return close(self, *args, **kwargs)
+
+    def fail(self, *args, **kwargs):
+        raise RuntimeError("camera did not answer")
+
+    monkeypatch.setattr(SerialEnv, "close", record)
+    monkeypatch.setattr(ChunkedEnv, "_reset", fail)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        with pytest.raises(RuntimeError, match="camera did not answer"):
+            exp.evaluate(["id"], episodes=2, num_envs=2, output_dir=tmp_path / "s", progress=False)
+        assert len(closed) == 1  # closed by the evaluation, not left to the garbage collector
+        gc.collect()
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_env_section_oracle_tracking_turns_the_controllers_tracker_off(exp, monkeypatch):
     """A recipe whose env section sets oracle_tracking: the env tracks in ood_tracking and ood_ddp_oracle,
     so the controller must not shift the end-effector too (it read only the protocol's overrides)."""
@@ -361,6 +395,27 @@ def test_videos_are_the_evaluated_episodes_whole_whatever_num_envs(exp, tmp_path
         assert sheet.width == min(chunks, 8) * 160, v.stem
     again = exp.evaluate(["id"], episodes=1, seed=2000, output_dir=tmp_path, progress=False, video=True)
     assert [Path(v).stem for v in again["protocols"]["id"]["videos"]] == ["seed2000"]
+
+
+def test_a_video_camera_the_env_lacks_is_one_line_before_any_rollout(exp, tmp_path, monkeypatch):
+    """eval.video_camera naming a camera the env does not have was a ValueError traceback at the first recorded
+    frame (after the detector's calibration); now a RecipeError naming the key, before any rollout."""
+    import ddp.evaluate as evaluate_module
+    from ddp.errors import RecipeError
+
+    def no_rollouts(*args, **kwargs):
+        raise AssertionError("an episode ran before the camera was checked")
+
+    exp.recipe.eval.video_camera = "side"
+    monkeypatch.setattr(evaluate_module, "rollout_episodes", no_rollouts)
+    with pytest.raises(RecipeError, match=r"eval.video_camera: .*one video camera, 'top'; got 'side'"):
+        exp.evaluate(["id", "id_ddp"], episodes=1, output_dir=tmp_path, progress=False, video=True)
+    exp.recipe.eval.video_camera = "top"
+    with pytest.raises(AssertionError, match="before the camera was checked"):  # the env's camera passes
+        exp.evaluate(["id"], episodes=1, output_dir=tmp_path, progress=False, video=True)
+    exp.recipe.eval.video_camera = "side"
+    with pytest.raises(AssertionError, match="before the camera was checked"):  # no video: not checked
+        exp.evaluate(["id"], episodes=1, output_dir=tmp_path, progress=False, video=False)
 
 
 def test_object_hidden_at_ood_entry_is_tracked_once_seen(exp):

@@ -679,6 +679,16 @@ def test_parts_that_read_the_simulators_truth_are_refused_on_a_real_robot():
     simulated = build("recipes/franka_stack.yaml", ["env.backend=real", "controller.detector.tau=1.0",
                                                      "env.real={franky_sim_info: /tmp/fsim.json}"])
     simulated.make_controller()
+    # the env the episodes run in decides, not the recipe's env section: eval.env (or a protocol's, or
+    # --env) may put a simulated recipe on the robot
+    sim = build("recipes/franka_stack.yaml", ["controller.tracker=null", "controller.detector={name: oracle}"])
+    sim.make_controller()  # in simulation the oracle reads the truth
+    with pytest.raises(RecipeError, match="controller.detector: 'OracleDetector' reads the simulator's"):
+        sim.make_controller(env={"backend": "real"})
+    on_robot = build("recipes/franka_stack.yaml", ["controller.tracker=null", "controller.detector={name: oracle}",
+                                                   "eval.env={backend: real}"])
+    with pytest.raises(RecipeError, match="controller.detector: 'OracleDetector' reads the simulator's"):
+        on_robot.evaluate(["id", "id_ddp"], episodes=1, progress=False)
 
 
 def test_an_env_that_cannot_judge_success_reports_none_not_zero(tmp_path):
@@ -695,6 +705,13 @@ def test_an_env_that_cannot_judge_success_reports_none_not_zero(tmp_path):
     from ddp.envs.franka.env import FrankaEnvConfig as Config
 
     assert Config(task="stack").judges_success() and not Config(task="stack", backend="real").judges_success()
+    # judged in the env the episodes run in (eval.env / a protocol's / --env overrides on the recipe's)
+    from ddp import build
+    from ddp.eval_runner import judges_success
+
+    exp = build("recipes/franka_stack.yaml")
+    assert judges_success(exp) and judges_success(exp, {"max_episode_steps": 10})
+    assert not judges_success(exp, {"backend": "real"})
 
 
 def test_a_reflex_stops_the_arm_for_the_rest_of_the_episode_not_the_evaluation():

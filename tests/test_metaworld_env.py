@@ -515,6 +515,11 @@ def test_detect_env_options_are_checked_on_top_of_each_protocol():
     exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.env={settle_steps: -1}"])
     with pytest.raises(RecipeError, match="eval.env.*settle_steps must be >= 0"):
         env_overrides(exp, get_protocol("id"), None)
+    # a typo in eval.env is the recipe's (with the closest name), not "needed by this protocol"
+    exp = build("recipes/metaworld/quickstart_ddp.yaml", overrides=["eval.env={max_episode_step: 50}"])
+    with pytest.raises(RecipeError, match=r"eval.env: env 'metaworld' has no option 'max_episode_step'.*"
+                                          r"max_episode_steps"):
+        env_overrides(exp, get_protocol("ood_base"), None)
 
 
 

@@ -553,6 +553,33 @@ def test_cli_bench_prints_the_latency_lines(tmp_path, capsys):
     assert values["train_samples_per_s"][1] == [] and values["train_samples_per_s"][0] > 0
 
 
+def test_bench_times_the_in_distribution_cycle(tmp_path, monkeypatch):
+    """The cycle timed is the ID one (encode, policy, forecast, D_R-I) whatever D_R-I the random inputs give:
+    with tau 1.0 the tiny model read OOD from the second cycle and DDP was timed imagining, beside the
+    baseline's ID path."""
+    import ddp.detectors.discrepancy as discrepancy
+    from ddp import build
+    from ddp.bench import bench
+
+    score = discrepancy.residual_score
+    # a model whose D_R-I on random inputs is large (a real checkpoint's latents, unlike the tiny model's)
+    monkeypatch.setattr(discrepancy, "residual_score", lambda *a, **k: 1e6 * score(*a, **k).abs() + 1e6)
+    exp = build(_cli_recipe(tmp_path))
+    made = []
+    make = exp.make_controller
+
+    def record(**kwargs):
+        made.append(make(**kwargs))
+        return made[-1]
+
+    monkeypatch.setattr(exp, "make_controller", record)
+    bench(exp, repeats=2, warmup=1, train_steps=1)
+    assert len(made) == 2
+    for ctrl in made:
+        assert ctrl.states and not any(s.ood for s in ctrl.states)
+        assert ctrl.states[0].has_forecast  # the forecast D_R-I compares with was made (and compared)
+
+
 def test_cli_bench_compares_with_the_dp3_baseline_in_the_same_process(tmp_path, capsys):
     """By default the recipe and its DP3 baseline (world model off) are timed in alternating rounds, with cost
     ratios that read the same way on every row (samples per second: baseline / recipe)."""

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ddp.plots import save_figure
+
 __all__ = ["plot_table", "plot_detection"]
 
 
@@ -91,9 +93,7 @@ def _finish(plt, fig, handles, labels, title: str, path: Path) -> Path:
     fig.legend(handles, labels, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8, frameon=False)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_figure(plt, fig, path, dpi=110, bbox_inches="tight")
 
 
 def plot_table(table: dict, columns: list[str], path: Path, title: str, reference: dict[str, float] | None = None,
