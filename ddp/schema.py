@@ -47,6 +47,12 @@ class PolicyConfig:
             raise ValueError(f"obs_steps must be >= 1; got {self.obs_steps}")
         if self.action_steps < 1:
             raise ValueError(f"action_steps must be >= 1; got {self.action_steps}")
+        if self.action_steps < self.obs_steps:
+            raise ValueError(
+                f"action_steps must be >= obs_steps = {self.obs_steps} (the env stacks the last obs_steps frames of "
+                f"each executed chunk, and the world model's last obs_steps forecast latents are the next "
+                f"cycle's history); got {self.action_steps}"
+            )
         if self.horizon < self.obs_steps + self.action_steps - 1:
             raise ValueError(
                 f"horizon must be >= obs_steps + action_steps - 1 = {self.obs_steps + self.action_steps - 1} "

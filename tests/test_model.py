@@ -194,6 +194,56 @@ def test_world_model_target_gradient_option(tiny_recipe, target_gradient):
     assert pc.grad[:, :2].abs().sum() > 0
 
 
+def test_world_model_targets_are_exactly_the_n_frames_after_the_history(tiny_recipe):
+    """L_WM's targets are frames M .. M+N-1 (every one of them, none after): the gradient through the target
+    encoding reaches exactly those frames."""
+    tiny_recipe["world_model"]["target_gradient"] = True
+    e = build(tiny_recipe)
+    M, N = e.model.obs_steps, e.model.action_steps
+    batch = batch_of(e)
+    pc = batch["point_cloud"].clone().requires_grad_(True)
+    batch["point_cloud"] = pc
+    e.model.loss(batch, generator=torch.Generator().manual_seed(0))["loss_wm"].backward()
+    per_frame = pc.grad.abs().sum(dim=(0, 2, 3))
+    assert bool((per_frame[: M + N] > 0).all()), per_frame
+    assert bool((per_frame[M + N :] == 0).all()), per_frame
+
+
+def test_world_model_conditions_on_the_executed_actions_only(exp):
+    """W_phi(O_curr, a_t) in training: a_t is the executed chunk actions[M-1 : M-1+N] (the one DP3 executes),
+    so actions before it or after it leave L_WM bit for bit, each action in it changes it."""
+    M, N = exp.model.obs_steps, exp.model.action_steps
+    batch = batch_of(exp)
+
+    def wm_error(b):
+        return exp.model.loss(b, generator=torch.Generator().manual_seed(0))["wm_error"]
+
+    base = wm_error(batch)
+    for index, changes in ((0, False), (M - 1, True), (M + N - 2, True), (M + N - 1, False)):
+        other = batch.clone()
+        other["action"][:, index] += 0.3
+        assert (not torch.equal(wm_error(other), base)) == changes, index
+
+
+def test_imagine_conditions_the_world_model_as_training_does(exp):
+    """imagine(encode(history), executed actions) hands the world model's denoiser the same global and local
+    conditions as loss() does for the same window: a train / inference mismatch would pass every loss test."""
+    M, N = exp.model.obs_steps, exp.model.action_steps
+    batch = batch_of(exp, batch_size=2)
+    seen = []
+    predict = exp.model.world_model_net.predict
+    exp.model.world_model_net.predict = lambda x, t, *cond: seen.append(cond) or predict(x, t, *cond)
+    exp.model.eval()
+    with torch.no_grad():
+        exp.model.loss(batch, generator=torch.Generator().manual_seed(0))
+        latent = exp.model.encode(batch["point_cloud"][:, :M], batch["agent_pos"][:, :M])
+        exp.model.imagine(latent, batch["action"][:, M - 1 : M - 1 + N], generator=torch.Generator().manual_seed(0))
+    training, imagined = seen[0], seen[1]
+    assert len(training) == len(imagined) and len(training) > 0
+    for a, b in zip(training, imagined):
+        assert a.shape == b.shape and torch.allclose(a, b, atol=1e-5), (a.shape, (a - b).abs().max())
+
+
 @pytest.mark.parametrize("target_gradient", [True, False])
 def test_world_model_batch_fraction_uses_only_the_first_samples_futures(tiny_recipe, target_gradient):
     tiny_recipe["world_model"].update(target_gradient=target_gradient, batch_fraction=0.5)

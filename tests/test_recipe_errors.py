@@ -89,6 +89,13 @@ def test_cross_field_rule(tmp_path, good):
     assert msg.startswith(f"{p}: policy: horizon must be >= obs_steps + action_steps - 1 = 9")
 
 
+def test_fewer_executed_actions_than_observed_frames_is_refused_at_build(tmp_path, good):
+    """N < M built and trained; the env's frame stacking refused it only when evaluation made the env."""
+    p = write(tmp_path, "r.yaml", "base: good.yaml\npolicy:\n  obs_steps: 3\n  action_steps: 2\n")
+    msg = error_of(p)
+    assert msg.startswith(f"{p}: policy: action_steps must be >= obs_steps = 3"), msg
+
+
 def test_bad_base_path(tmp_path):
     p = write(tmp_path, "r.yaml", "base: nowhere.yaml\nname: x\n")
     msg = error_of(p)
