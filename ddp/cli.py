@@ -565,15 +565,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ddp: error: {err}", file=sys.stderr)
         return 2
     except Preempted as err:
-        print(f"ddp: {err} (a training run saved its checkpoint, an evaluation closed its envs; the same command "
-              "resumes training)", file=sys.stderr)
+        # --no-resume again would set the checkpoint just saved aside and start over
+        again = "rerun without --no-resume to resume" if getattr(args, "no_resume", False) else \
+            "the same command resumes"
+        _say(f"ddp: {err} (a training run saved its checkpoint, an evaluation closed its envs; {again} training)")
         return 128 + err.signum
     except BrokenPipeError:  # `ddp list | head`: the reader left; no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
     except KeyboardInterrupt:
-        print("ddp: interrupted (a checkpoint was written where training was running)", file=sys.stderr)
+        _say("ddp: interrupted (a checkpoint was written where training was running)")
         return 130
+
+
+def _say(message: str) -> None:
+    """The last line of a stopped command, on stderr; a hung-up terminal (SIGHUP) keeps the exit status."""
+    try:
+        print(message, file=sys.stderr)
+    except OSError:
+        pass
 
 
 if __name__ == "__main__":

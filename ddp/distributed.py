@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import torch
 
+from ddp.errors import DDPError
+
 __all__ = ["Ranks", "process_group"]
 
 
@@ -55,6 +57,25 @@ class Ranks:
         if not self.enabled:
             return bool(flag)
         return self.all_reduce_mean([float(bool(flag))], device)[0] > 0
+
+    def on_main(self, fn, device, what: str):
+        """``fn()`` on rank 0 alone, the other ranks told whether it raised (a collective: all ranks call it), so
+        that a failure there (a busy output folder, a logger that cannot start) is rank 0's own one-line error
+        and every other rank stops with one line too, instead of waiting in the next collective (a hang on
+        NCCL, a transport traceback on gloo). Returns ``fn()``'s value on rank 0, None elsewhere. ``what``:
+        what rank 0 was doing, for the other ranks' message."""
+        if not self.enabled:
+            return fn() if self.main else None
+        result = None
+        if self.main:
+            try:
+                result = fn()
+            except BaseException:
+                self.any(True, device)  # the others learn it failed, then stop with their own line
+                raise
+        if self.any(False, device):
+            raise DDPError(f"rank 0 could not {what} (its error says why); rank {self.rank} stops too")
+        return result
 
     def gather(self, obj) -> list:
         """Every rank's ``obj`` (a collective: all ranks call it)."""

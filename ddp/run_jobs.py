@@ -41,6 +41,8 @@ __all__ = ["Job", "JobsFailed", "plan_jobs", "run_jobs"]
 
 STOP_GRACE_SECONDS = 300  # how long a stopped job may take to save its checkpoint before it is killed
 _STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: how a stopped job exits: `ddp run`'s 128 + signal (130 for Ctrl-C), or killed by the signal itself / SIGKILL
+_STOPPED_CODES = frozenset({*(128 + s for s in _STOPS), *(-s for s in _STOPS), -signal.SIGKILL})
 
 
 @dataclass
@@ -120,6 +122,14 @@ def run_jobs(jobs: list[Job], *, parallel: int, threads: int, echo=print) -> dic
     Raises :class:`JobsFailed` if any failed (after the others finished), ``KeyboardInterrupt`` /
     :class:`~ddp.preemption.Preempted` if stopped (after the jobs in progress saved). Whatever ends it, no
     job outlives it: an error here stops the jobs in progress (SIGTERM: they save) before it propagates."""
+    say = echo
+
+    def echo(message: str) -> None:  # a hung-up terminal (SIGHUP, ssh gone) must not cut the stopping short
+        try:
+            say(message)
+        except OSError:
+            pass
+
     env = dict(os.environ)
     env.setdefault("OMP_NUM_THREADS", str(threads))
     env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -162,7 +172,9 @@ def run_jobs(jobs: list[Job], *, parallel: int, threads: int, echo=print) -> dic
             signal.signal(s, handler)
     if stopped:
         left = [j.name for j in queue]
-        echo("stopped" + (f"; not started: {', '.join(left)}" if left else "") + " (the same command resumes)")
+        again = ("rerun without --no-resume to resume" if any("--no-resume" in j.argv for j in jobs)
+                 else "the same command resumes")  # --no-resume would set the checkpoints just saved aside
+        echo("stopped" + (f"; not started: {', '.join(left)}" if left else "") + f" ({again})")
         raise KeyboardInterrupt() if stopped[0] == signal.SIGINT else Preempted(stopped[0])
     ordered = {j.name: reports[j.name] for j in jobs if j.name in reports}
     if failed:
@@ -221,8 +233,12 @@ def _stop(running: list[Job], signum: int, reports: dict, failed: dict, echo) ->
             echo(f"{job.name} did not stop within {STOP_GRACE_SECONDS} s: killed")
             job.proc.kill()
             job.proc.wait()
-        if job.proc.returncode == 0:
+        code = job.proc.returncode
+        if code == 0:
             _finish(job, reports, failed, echo)
-        else:
-            echo(f"{job.name} stopped (exit {job.proc.returncode}; log: {job.log})")
+        elif code in _STOPPED_CODES:
+            echo(f"{job.name} stopped (exit {code}; log: {job.log})")
+        else:  # e.g. its checkpoint write refused (exit 2): what it did since its last checkpoint is lost
+            failed[job.name] = f"exit {code} while stopping: {_last_line(job.log)}"
+            echo(f"{job.name} failed while stopping (exit {code}; log: {job.log})")
     running.clear()

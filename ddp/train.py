@@ -198,14 +198,17 @@ class Trainer:
         Under ``torchrun`` every rank trains its share of each batch (``ddp.distributed``); rank 0
         holds the lock, checkpoints, logs and shows progress.
         """
-        with process_group(self.device) as ranks:
+        with process_group(self.device) as ranks, contextlib.ExitStack() as held:
             self.ranks = ranks
-            lock = RunLock(self.output_dir) if ranks.main else contextlib.nullcontext()
+
+            def take_the_folder() -> None:
+                held.enter_context(RunLock(self.output_dir))  # released when fit() returns or raises
+                remove_leftovers(self.output_dir, LAST)  # temporary files of writes a kill interrupted
+
+            # rank 0 alone; a busy folder stops every rank with one line (a collective: also the barrier)
+            ranks.on_main(take_the_folder, self.device, "lock its output folder")
             # SIGTERM / SIGHUP (a scheduler's preemption) end training like Ctrl-C: with a checkpoint
-            with lock, stop_signals():
-                if ranks.main:
-                    remove_leftovers(self.output_dir, LAST)  # temporary files of writes a kill interrupted
-                ranks.barrier()
+            with stop_signals():
                 return self._fit(resume)
 
     def _fit(self, resume: bool) -> TrainResult:
@@ -217,8 +220,9 @@ class Trainer:
             keys=["point_cloud", "agent_pos", "action"],
         )
         ckpt_path = self.output_dir / LAST
-        if not resume and self.ranks.main:
-            aside = set_aside_previous_run(self.output_dir, LAST)
+        if not resume:
+            aside = self.ranks.on_main(lambda: set_aside_previous_run(self.output_dir, LAST), self.device,
+                                       "set the earlier run aside")
             if aside is not None:
                 warnings.warn(f"starting over in {self.output_dir}: the earlier run's checkpoint and logs moved to "
                               f"{aside}", UserWarning, stacklevel=3)
@@ -264,12 +268,17 @@ class Trainer:
                     and stored_frames == table_frames):
                 model.target_table = table.to(self.device)
                 table_step = int(state["target_table_step"])
-            if cfg.logger == "csv" and ranks.main:
-                trim_csv_logs(self.output_dir, step)  # rows a killed run logged after its last checkpoint
-        elif cfg.logger == "csv" and ranks.main and (self.output_dir / LOGS_DIR).is_dir():
-            trim_csv_logs(self.output_dir, -1)  # rows of a run killed before its first checkpoint
+        if cfg.logger == "csv":
+            # rows a killed run logged after its last checkpoint (or, killed before its first one, all of them)
+            resumed_at = step if state is not None else -1
+
+            def trim() -> None:
+                if state is not None or (self.output_dir / LOGS_DIR).is_dir():
+                    trim_csv_logs(self.output_dir, resumed_at)
+
+            ranks.on_main(trim, self.device, "trim its logs")
         same_start(ranks, (step, epoch, batch_in_epoch), self.output_dir)
-        logger = self._logger() if ranks.main else None
+        logger = ranks.on_main(self._logger, self.device, "start its logger")
         loss_fn = torch.compile(model.loss) if cfg.compile else model.loss
         parallel = None
         if ranks.enabled:  # torch's DistributedDataParallel: gradients averaged across ranks in backward
@@ -369,6 +378,10 @@ class Trainer:
         with signals_deferred(between):
             try:
                 with stop_requests(requested):
+                    # a signal that came while the handlers were being swapped: acted on at the first boundary
+                    # (it was held until the whole run had ended)
+                    requested.extend(between)
+                    between.clear()
                     while epoch < cfg.epochs and step < total:
                         order = self._epoch_order(epoch, len(dataset))
                         while batch_in_epoch < per_epoch and step < total:

@@ -162,6 +162,23 @@ def test_a_checkpoint_write_that_fails_on_rank_0_stops_every_rank_with_one_line(
     assert not (out / "last.pt").exists()
 
 
+def test_a_busy_output_folder_stops_every_rank_with_one_line(tmp_path):
+    """Only rank 0 takes the folder's lock: when another ddp train held it, rank 0 said so in one line and
+    rank 1, waiting in the barrier, died with a gloo traceback (on NCCL it would hang until torchrun's
+    timeout). Every rank now ends with its own line, and nothing of the other run's is touched."""
+    from ddp.run_dir import RunLock
+
+    out = tmp_path / "run"
+    with RunLock(out):
+        done = _torchrun(_recipe(tmp_path), out)
+    assert done.returncode != 0
+    assert f"ddp: error: {out}: another ddp train (pid {os.getpid()}) is writing there" in done.stderr
+    assert "ddp: error: rank 0 could not lock its output folder (its error says why); rank 1 stops too" in done.stderr
+    # no traceback through ddp's code on either rank (torchrun prints its own summary of the failure)
+    assert f'{os.sep}ddp{os.sep}train.py", line' not in done.stderr, done.stderr[-3000:]
+    assert not (out / "last.pt").exists()
+
+
 def test_ranks_that_would_resume_from_different_steps_are_refused(tmp_path):
     """Each rank reads last.pt itself: where train.output_dir is not shared (one folder per node), some
     ranks would resume and others start afresh, and their collectives would go out of step."""

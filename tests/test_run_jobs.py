@@ -148,3 +148,95 @@ def test_an_error_here_stops_the_jobs_in_progress(tmp_path, monkeypatch, child_p
         run_jobs_module.run_jobs(jobs, parallel=2, threads=1, echo=lambda line: None)
     assert jobs[0].proc.returncode == 128 + signal.SIGTERM  # stopped like a preempted run, not orphaned
     assert 0 < load_checkpoint(tmp_path / "runs" / "tiny" / "last.pt")["step"] < 100_000
+
+
+def _saving_job(tmp_path: Path, name: str, save_seconds: float, code: int, argv_extra=()) -> "Job":
+    """A stand-in for `ddp run`: on SIGTERM it 'saves' for ``save_seconds``, then exits with ``code``."""
+    from ddp.run_jobs import Job
+
+    script = (f"import signal, sys, time\n"
+              f"signal.signal(signal.SIGTERM, lambda s, f: (time.sleep({save_seconds}), sys.exit({code})))\n"
+              f"open({str(tmp_path / (name + '.ready'))!r}, 'w').close()\n"
+              f"time.sleep(120)\n")
+    return Job(name, [sys.executable, "-c", script, *argv_extra], tmp_path / name / "run.log",
+               tmp_path / name / "results.json")
+
+
+def _stop_once_all_ready(tmp_path: Path, jobs, hung_up: list):
+    """An echo that sends this process SIGTERM once every job is up, and from then on writes to a terminal
+    that has hung up (OSError EIO), as after an ssh session closed."""
+    import errno
+
+    def echo(line: str) -> None:
+        if hung_up:
+            raise OSError(errno.EIO, "Input/output error")
+        if line.startswith("started") and all(j.proc is not None for j in jobs):
+            deadline = time.monotonic() + 30
+            while not all((tmp_path / f"{j.name}.ready").exists() for j in jobs) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            hung_up.append(True)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return echo
+
+
+def test_a_hung_up_terminal_does_not_cut_the_stop_short(tmp_path):
+    """The terminal hangs up (SIGHUP): echoing the first job's stop raised EIO and left the loop, so the second
+    job, still saving, was never waited for (nor killed at the grace limit): it outlived its parent."""
+    from ddp.preemption import Preempted
+    from ddp.run_jobs import run_jobs
+
+    jobs = [_saving_job(tmp_path, "quick", 0.1, 143), _saving_job(tmp_path, "slow", 1.5, 143)]
+    try:
+        with pytest.raises(Preempted):
+            run_jobs(jobs, parallel=2, threads=1, echo=_stop_once_all_ready(tmp_path, jobs, []))
+        assert [j.proc.returncode for j in jobs] == [143, 143]  # both saved and were waited for
+    finally:
+        for j in jobs:
+            if j.proc is not None and j.proc.poll() is None:
+                j.proc.kill()
+                j.proc.wait()
+
+
+def test_a_job_failing_while_it_stops_is_reported_failed_and_no_resume_is_named(tmp_path):
+    """A job whose save failed while stopping (exit 2: a checkpoint write refused) read "stopped", and the
+    closing line told a --no-resume run that the same command resumes (it would set the checkpoints aside)."""
+    from ddp.preemption import Preempted
+    from ddp.run_jobs import run_jobs
+
+    jobs = [_saving_job(tmp_path, "saves", 0.1, 143, ["--no-resume"]), _saving_job(tmp_path, "breaks", 0.1, 2)]
+    lines: list[str] = []
+    stop = _stop_once_all_ready(tmp_path, jobs, [])
+
+    def echo(line: str) -> None:
+        lines.append(line)
+        stop(line) if not any("stopped" in ln or "failed" in ln for ln in lines) else None
+
+    try:
+        with pytest.raises(Preempted):
+            run_jobs(jobs, parallel=2, threads=1, echo=echo)
+    finally:
+        for j in jobs:
+            if j.proc is not None and j.proc.poll() is None:
+                j.proc.kill()
+                j.proc.wait()
+    text = "\n".join(lines)
+    assert "saves stopped (exit 143" in text and "breaks failed while stopping (exit 2" in text, text
+    assert lines[-1].endswith("(rerun without --no-resume to resume)"), text
+
+
+def test_a_stopped_no_resume_run_says_how_to_resume(monkeypatch, capsys):
+    """`ddp train R --no-resume`, preempted, said "the same command resumes": rerun as told, it set the
+    checkpoint it had just saved aside and started from step 0."""
+    import ddp.cli as cli
+    from ddp.preemption import Preempted
+
+    def preempted(args):
+        raise Preempted(signal.SIGTERM)
+
+    monkeypatch.setattr(cli, "cmd_train", preempted)
+    recipe = str(ROOT / "recipes" / "quickstart.yaml")
+    for flags, expected in (([], "the same command resumes training"),
+                            (["--no-resume"], "rerun without --no-resume to resume training")):
+        assert cli.main(["train", recipe, *flags]) == 128 + signal.SIGTERM
+        assert expected in capsys.readouterr().err

@@ -158,6 +158,32 @@ def test_an_interruption_inside_a_step_never_checkpoints_half_a_step(where, tiny
         assert torch.equal(v, reference[k]), k
 
 
+def test_a_signal_while_the_loop_s_handlers_are_installed_stops_at_the_first_boundary(tiny_recipe, tmp_path,
+                                                                                       monkeypatch):
+    """A SIGTERM landing after the save's deferring handlers are set but before the loop's are was recorded and
+    raised only once the whole run had ended (a scheduler's preemption ignored until its SIGKILL)."""
+    import contextlib
+    import signal
+
+    import ddp.train as train_module
+    from ddp.preemption import Preempted
+
+    real = train_module.stop_requests
+
+    @contextlib.contextmanager
+    def late(requested):
+        os.kill(os.getpid(), signal.SIGTERM)  # lands in the deferring handler, before the loop's own
+        with real(requested) as r:
+            yield r
+
+    monkeypatch.setattr(train_module, "stop_requests", late)
+    e = build(tiny_recipe)
+    with pytest.raises(Preempted):
+        e.train(output_dir=tmp_path / "run", progress=False)
+    state = load_checkpoint(tmp_path / "run/last.pt")
+    assert state["step"] <= 1  # stopped at the first step boundary, not after the whole run
+
+
 def test_checkpoint_round_trip_gives_identical_outputs(tiny_recipe, tmp_path):
     exp = build(tiny_recipe)
     exp.train(output_dir=tmp_path, progress=False)
