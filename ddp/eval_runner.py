@@ -143,6 +143,10 @@ def check_video_camera(exp, overrides: dict, camera: str | None) -> None:
         return
     env = make_chunked_env(exp, seed=0, overrides=overrides)
     try:
+        if not callable(getattr(env.base, "render_rgb", None)):
+            raise RecipeError(f"env '{exp.parts['env'].plugin.name}' cannot record videos (it has no "
+                              f"render_rgb(width, height, camera)): set eval.video false", source=exp.source,
+                              key="eval.video_camera")
         env.reset()
         try:
             env.base.render_rgb(16, 16, camera=camera)

@@ -416,6 +416,11 @@ def test_a_video_camera_the_env_lacks_is_one_line_before_any_rollout(exp, tmp_pa
     exp.recipe.eval.video_camera = "side"
     with pytest.raises(AssertionError, match="before the camera was checked"):  # no video: not checked
         exp.evaluate(["id"], episodes=1, output_dir=tmp_path, progress=False, video=False)
+    from ddp.envs.synthetic_reach import SyntheticReachEnv
+
+    monkeypatch.delattr(SyntheticReachEnv, "render_rgb")  # an env plugin that cannot render
+    with pytest.raises(RecipeError, match=r"eval.video_camera: env 'synthetic_reach' cannot record videos"):
+        exp.evaluate(["id"], episodes=1, output_dir=tmp_path, progress=False, video=True)
 
 
 def test_object_hidden_at_ood_entry_is_tracked_once_seen(exp):

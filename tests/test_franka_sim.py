@@ -397,6 +397,16 @@ def test_occlusion_blinds_the_chosen_chunks(envs):
     assert flags == [False] * 4 + [True] * 8 + [False] * 2  # observations after actions 5..12
 
 
+def test_a_video_camera_the_scene_lacks_names_the_ones_it_has(envs):
+    """A wrong eval.video_camera was KeyError('side'): the message named neither the cameras nor the closest."""
+    env = envs("press")
+    env.reset(seed=0)
+    assert env.render_rgb(16, 16, camera="policy").shape == (16, 16, 3)
+    with pytest.raises(ValueError, match=r"video camera must be one of \[.*'policy'.*\]; got 'polcy'; did you mean "
+                                         r"'policy'"):
+        env.render_rgb(16, 16, camera="polcy")
+
+
 def test_recipes_build():
     from conftest import RECIPES
     from ddp import build

@@ -717,3 +717,11 @@ def test_a_suite_refuses_an_env_that_cannot_judge_success(suite_file, monkeypatc
     monkeypatch.setattr(SyntheticReachEnvConfig, "judges_success", lambda self: False, raising=False)
     with pytest.raises(DDPError, match=r"cannot judge success .*evaluate it with `ddp eval`"):
         _check_judged(exp, run)
+    monkeypatch.undo()
+    # the env the episodes run in decides: eval.env may put a simulated recipe on the robot
+    monkeypatch.setattr(SyntheticReachEnvConfig, "judges_success", lambda self: self.table_points != 7,
+                        raising=False)
+    _check_judged(exp, run)
+    exp.recipe.eval.env = {"table_points": 7}  # stands for {backend: real} on a Franka recipe
+    with pytest.raises(DDPError, match=r"cannot judge success"):
+        _check_judged(exp, run)

@@ -83,10 +83,17 @@ def _summary(protocol: dict) -> dict:
 
 
 def _check_judged(exp, run: RunSpec) -> None:
-    """A suite aggregates success rates: an env whose episodes a person judges (a real robot) has none to give."""
+    """A suite aggregates success rates: an env whose episodes a person judges (a real robot) has none to give.
+    Checked in the env each protocol runs in (``eval.env`` may put a simulated recipe on the robot)."""
+    from ddp.eval_runner import env_overrides, judges_success
+    from ddp.protocols.base import get_protocol
+
     env = exp.parts.get("env")
-    judges = getattr(env.config, "judges_success", None) if env is not None else None
-    if callable(judges) and not judges():
+    if env is None:
+        return
+    protocols = list(run.protocols) if run.protocols else list(exp.recipe.eval.protocols)
+    if not all(judges_success(exp, env_overrides(exp, get_protocol(p), exp.recipe.eval.max_steps))
+               for p in protocols):
         raise DDPError(f"{run.run_id}: env '{env.plugin.name}' cannot judge success (a real robot: a person does), "
                        f"so a suite has no success rate to aggregate; evaluate it with `ddp eval` or `ddp run`")
 

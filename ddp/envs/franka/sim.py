@@ -45,6 +45,7 @@ import numpy as np
 from ddp.envs.franka.backend import CameraFrame, FrankaBackend
 from ddp.envs.franka.control import mat_to_quat, mat_to_rotvec, quat_to_mat
 from ddp.envs.franka.tasks.base import DOWN, CameraSpec, FrankaTask
+from ddp.errors import suggest
 
 __all__ = ["SimCamera", "SimFrankaBackend", "EE_FROM_SITE"]
 
@@ -443,6 +444,9 @@ class SimFrankaBackend(FrankaBackend):
 
     def render_rgb(self, camera: str, width: int, height: int) -> np.ndarray:
         """A colour image of a named camera (videos); ``[H, W, 3]`` uint8."""
+        if camera not in self._cam_ids:
+            names = list(self._cam_ids)
+            raise ValueError(f"video camera must be one of {names}; got {camera!r}{suggest(camera, names)}")
         r = self._renderer(height, width)
         r.update_scene(self.data, camera=self._cam_ids[camera], scene_option=self._rgb_option)
         return r.render().copy()
