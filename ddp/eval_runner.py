@@ -58,6 +58,12 @@ def _plain(value):
     return value
 
 
+def env_config(exp, overrides: dict | None = None):
+    """The recipe's env config with ``overrides`` (``eval.env``, a protocol's, ``--env``) in place: the config
+    of the env the episodes run in."""
+    return dataclasses.replace(exp.parts["env"].config, **(overrides or {}))
+
+
 def env_overrides(exp, protocol: EvalProtocol, max_steps: int | None, extra: dict | None = None,
                   extra_source: str = "--env") -> dict:
     """The env overrides a protocol runs with: ``eval.env``, the protocol's own, oracle tracking, occlusion and
@@ -115,7 +121,7 @@ class ChunkedEnvFactory:
 def env_factory(exp, seed: int, overrides: dict | None = None, video: VideoSettings | None = None) -> ChunkedEnvFactory:
     pol, part = exp.recipe.policy, exp.parts["env"]
     return ChunkedEnvFactory(
-        plugin=part.plugin.name, config=dataclasses.replace(part.config, **(overrides or {})),
+        plugin=part.plugin.name, config=env_config(exp, overrides),
         action_steps=pol.action_steps, obs_steps=pol.obs_steps, safe_lift=exp.recipe.controller.safe_lift,
         seed=seed, video=video, plugin_modules=exp.plugin_modules,
     )
@@ -129,7 +135,7 @@ def judges_success(exp, overrides: dict | None = None) -> bool:
     """Whether the env the episodes run in (the recipe's config with ``overrides``: ``eval.env``, a protocol's,
     ``--env``) can tell a success (the env contract's optional ``judges_success()``; a real robot cannot: a
     person judges its episodes, and evaluations report none)."""
-    cfg = dataclasses.replace(exp.parts["env"].config, **(overrides or {}))
+    cfg = env_config(exp, overrides)
     judges = getattr(cfg, "judges_success", None)
     return not callable(judges) or bool(judges())
 
@@ -157,7 +163,7 @@ def check_video_camera(exp, overrides: dict, camera: str | None) -> None:
 
 
 def _chunks_per_episode(exp, overrides: dict) -> int:
-    cfg = dataclasses.replace(exp.parts["env"].config, **overrides)
+    cfg = env_config(exp, overrides)
     steps = getattr(cfg, "max_episode_steps", None)
     if steps is None:
         raise RecipeError("the env config has no max_episode_steps; set eval.max_steps", source=exp.source, key="eval")
@@ -310,7 +316,7 @@ def _id_env(exp) -> tuple[dict, object]:
     from ddp.protocols.base import get_protocol
 
     overrides = env_overrides(exp, get_protocol("id"), exp.recipe.eval.max_steps)
-    return overrides, dataclasses.replace(exp.parts["env"].config, **overrides)
+    return overrides, env_config(exp, overrides)
 
 
 def calibration_blocks(exp, seed: int, episodes: int, first_seed: int) -> list[tuple[int, int, int]]:
@@ -345,7 +351,7 @@ def evaluation_blocks(exp, overrides: dict, seed: int, episodes: int) -> list[tu
     protocol's ``overrides`` for the first ``initial_states_per_draw`` seeds (all of them for an env whose
     states do not repeat), then, per further block of that many seeds, the env's ``more_initial_states(block)``
     on top (another draw of initial states: no two evaluated episodes start from one state)."""
-    config = dataclasses.replace(exp.parts["env"].config, **overrides)
+    config = env_config(exp, overrides)
     period = getattr(config, "initial_states_per_draw", None)
     more = getattr(config, "more_initial_states", None)
     if not period or not callable(more) or episodes <= period:
