@@ -1,5 +1,6 @@
-"""argparse types shared by the command line and the scripts: a value outside its range is a one-line usage
-error naming the flag (argparse adds the flag's name to the message)."""
+"""argparse types shared by the scripts (``benchmarks/``, ``scripts/``): a value outside its range is a one-line
+usage error naming the flag (argparse adds the flag's name to the message). The ``ddp`` command checks its counts
+after parsing instead (``cli._at_least_one``: flags whose unset default is None)."""
 
 from __future__ import annotations
 

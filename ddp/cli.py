@@ -169,6 +169,7 @@ def _detect(args) -> int:
     from pathlib import Path
 
     from ddp import results_json
+    from ddp.atomic_file import atomic_write
     from ddp.detection import (
         SCORE_VARIANTS, detect, format_detect, load_rollouts, plot_detect, save_rollouts, summary_json,
     )
@@ -217,9 +218,10 @@ def _detect(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if rollouts is None:
         save_rollouts(rep["rollouts"], out / "detect_rollouts.npz")
-    (out / "detect.json").write_text(results_json.dumps(summary_json(rep)))
-    (out / "detect_traces.json").write_text(results_json.dumps(rep["traces"], indent=None))
-    (out / "detect.md").write_text(format_detect(rep))
+    for name, text in (("detect.json", results_json.dumps(summary_json(rep))),
+                       ("detect_traces.json", results_json.dumps(rep["traces"], indent=None)),
+                       ("detect.md", format_detect(rep))):
+        atomic_write(out / name, lambda f: f.write(text), binary=False)
     for score in rep["traces"]:
         plot_detect(rep, score, out / f"detect_{score}.png")
     print(format_detect(rep))
@@ -565,17 +567,20 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ddp: error: {err}", file=sys.stderr)
         return 2
     except Preempted as err:
-        # --no-resume again would set the checkpoint just saved aside and start over
-        again = "rerun without --no-resume to resume" if getattr(args, "no_resume", False) else \
-            "the same command resumes"
-        _say(f"ddp: {err} (a training run saved its checkpoint, an evaluation closed its envs; {again} training)")
+        _say(f"ddp: {err} (a training run saved its checkpoint, an evaluation closed its envs; {_again(args)} "
+             f"training)")
         return 128 + err.signum
     except BrokenPipeError:  # `ddp list | head`: the reader left; no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
     except KeyboardInterrupt:
-        _say("ddp: interrupted (a checkpoint was written where training was running)")
+        _say(f"ddp: interrupted (a checkpoint was written where training was running; {_again(args)})")
         return 130
+
+
+def _again(args) -> str:
+    """How a stopped command goes on: --no-resume again would set the checkpoint just saved aside."""
+    return "rerun without --no-resume to resume" if getattr(args, "no_resume", False) else "the same command resumes"
 
 
 def _say(message: str) -> None:

@@ -32,7 +32,10 @@ the first alarm found here is the one the closed-loop controller raises.
 from __future__ import annotations
 
 import math
+
 import numpy as np
+
+from ddp.atomic_file import atomic_write
 
 __all__ = ["auroc", "first_above", "first_visible", "alarmed_before_visible", "detection_metrics", "detect",
            "SCORE_VARIANTS", "format_detect"]
@@ -366,7 +369,8 @@ def save_rollouts(rollouts: dict, path) -> None:
             arrays[f"{name}/{i}/disturbed"] = np.asarray(ep.get("disturbed") or [], dtype=bool)
             judged = -1 if ep["success"] is None else int(ep["success"])  # -1: not judged (a real robot)
             arrays[f"{name}/{i}/meta"] = np.asarray([ep["seed"], judged], dtype=np.int64)
-    np.savez_compressed(path, **arrays)
+    # atomic: a kill mid-write left a truncated file that the next --rollouts refused (the rollouts lost)
+    atomic_write(path, lambda f: np.savez_compressed(f, **arrays))
 
 
 def load_rollouts(path) -> dict:

@@ -141,11 +141,11 @@ def judges_success(exp, overrides: dict | None = None) -> bool:
 
 
 def check_video_camera(exp, overrides: dict, camera: str | None) -> None:
-    """A video camera the env does not have, refused before any rollout under ``eval.video_camera`` (it was a
-    traceback at the first recorded frame, after the detector's calibration). Checked by rendering one frame
-    of a reset env; only where the env judges success itself (a simulator: a real robot's reset moves the arm
-    and waits for its operator)."""
-    if camera is None or not judges_success(exp, overrides):
+    """For a video evaluation, an env that cannot render or a camera it does not have, refused before any
+    rollout under ``eval.video_camera`` (each was a traceback at the first recorded frame, after the detector's
+    calibration). Checked on one env (a camera by rendering one frame of it reset); only where the env judges
+    success itself (a simulator: a real robot's reset moves the arm and waits for its operator)."""
+    if not judges_success(exp, overrides):
         return
     env = make_chunked_env(exp, seed=0, overrides=overrides)
     try:
@@ -153,20 +153,27 @@ def check_video_camera(exp, overrides: dict, camera: str | None) -> None:
             raise RecipeError(f"env '{exp.parts['env'].plugin.name}' cannot record videos (it has no "
                               f"render_rgb(width, height, camera)): set eval.video false", source=exp.source,
                               key="eval.video_camera")
+        if camera is None:  # the env's default camera
+            return
         env.reset()
         try:
             env.base.render_rgb(16, 16, camera=camera)
-        except (ValueError, KeyError) as err:
-            raise RecipeError(str(err).strip().splitlines()[0], source=exp.source, key="eval.video_camera") from None
+        except ValueError as err:  # the env contract's answer to a camera it lacks
+            raise RecipeError(str(err).strip().splitlines()[0], source=exp.source, key="eval.video_camera") from err
     finally:
         env.close(raise_if_closed=False)
 
 
 def _chunks_per_episode(exp, overrides: dict) -> int:
     cfg = env_config(exp, overrides)
-    steps = getattr(cfg, "max_episode_steps", None)
+    if not hasattr(cfg, "max_episode_steps"):  # eval.max_steps sets that field: nothing can be set here
+        raise RecipeError(f"env '{exp.parts['env'].plugin.name}' has no max_episode_steps option: evaluation "
+                          f"needs the episode length (the env plugin's config must have one)", source=exp.source,
+                          key="env")
+    steps = cfg.max_episode_steps
     if steps is None:
-        raise RecipeError("the env config has no max_episode_steps; set eval.max_steps", source=exp.source, key="eval")
+        raise RecipeError("the episode length is not set (env.max_episode_steps is null): set it", source=exp.source,
+                          key="eval.max_steps")
     if getattr(cfg, "terminate_on_success", False):
         # episodes are cut from the collector's stream every `chunks` chunks: one that ended early would
         # run into the next (its seed, success and detector trace mixed with another episode's)
@@ -211,6 +218,7 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
     done = [0] * num_envs  # episodes kept per env (one per env and batch; an env past its share runs idle)
     judged = judges_success(exp, overrides)  # a real robot's env cannot: a person judges its episodes
     env = collector = bar = None
+    finished = False
     try:  # from the env's construction on: the collector resets the envs when it is built, which may fail
         if num_envs == 1:
             env = factory(0)()
@@ -237,19 +245,45 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
                     bar.set_postfix(success=f"{np.mean([r['success'] for r in results]):.2f}")
             if len(results) >= episodes:
                 break
+        finished = True
     finally:
-        if bar is not None:
-            bar.close()
-        if collector is not None:
-            collector.shutdown()
-        if env is not None:
-            env.close(raise_if_closed=False)
-        if torch.get_num_threads() != threads:
-            torch.set_num_threads(threads)
         wait = getattr(controller, "wait_forecast", None)
-        if wait is not None:  # the last cycle's background forecast: nothing may run on the model after us
-            wait()
+        _clean_up([
+            None if bar is None else bar.close,
+            None if collector is None else collector.shutdown,
+            None if env is None else (lambda: env.close(raise_if_closed=False)),
+            lambda: _restore_threads(threads),  # after the env's close, which may raise the count
+            wait,  # the last cycle's background forecast: nothing may run on the model after us
+        ], quiet=not finished)
     return sorted(results, key=lambda r: r["seed"])
+
+
+def _restore_threads(threads: int) -> None:
+    import torch
+
+    if torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+
+
+def _clean_up(steps: list, quiet: bool) -> None:
+    """Run every cleanup step (None: nothing to do), whichever of them fails. ``quiet`` (the evaluation itself
+    failed): a step's error is a warning, so the evaluation's own error is the one raised (a dead worker's, not
+    the broken pipe its env's close then meets); otherwise the first step's error is raised once all have run."""
+    error = None
+    for step in steps:
+        if step is None:
+            continue
+        try:
+            step()
+        except Exception as err:  # noqa: BLE001 - the others still run; reported below
+            if quiet:
+                import warnings
+
+                warnings.warn(f"evaluation cleanup: {type(err).__name__}: {err}", RuntimeWarning, stacklevel=2)
+            elif error is None:
+                error = err
+    if error is not None:
+        raise error
 
 
 def _disturbed(traj) -> list[bool] | None:

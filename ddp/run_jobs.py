@@ -41,8 +41,9 @@ __all__ = ["Job", "JobsFailed", "plan_jobs", "run_jobs"]
 
 STOP_GRACE_SECONDS = 300  # how long a stopped job may take to save its checkpoint before it is killed
 _STOPS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-#: how a stopped job exits: `ddp run`'s 128 + signal (130 for Ctrl-C), or killed by the signal itself / SIGKILL
-_STOPPED_CODES = frozenset({*(128 + s for s in _STOPS), *(-s for s in _STOPS), -signal.SIGKILL})
+#: how a stopped job exits: `ddp run`'s 128 + signal (130 for Ctrl-C), or killed by the signal itself (a SIGKILL,
+#: ours after the grace time or the OOM killer's, cut its save short: failed, not stopped)
+_STOPPED_CODES = frozenset({*(128 + s for s in _STOPS), *(-s for s in _STOPS)})
 
 
 @dataclass
@@ -174,7 +175,8 @@ def run_jobs(jobs: list[Job], *, parallel: int, threads: int, echo=print) -> dic
         left = [j.name for j in queue]
         again = ("rerun without --no-resume to resume" if any("--no-resume" in j.argv for j in jobs)
                  else "the same command resumes")  # --no-resume would set the checkpoints just saved aside
-        echo("stopped" + (f"; not started: {', '.join(left)}" if left else "") + f" ({again})")
+        echo("stopped" + (f"; not started: {', '.join(left)}" if left else "")
+             + (f"; failed: {', '.join(failed)} (see above)" if failed else "") + f" ({again})")
         raise KeyboardInterrupt() if stopped[0] == signal.SIGINT else Preempted(stopped[0])
     ordered = {j.name: reports[j.name] for j in jobs if j.name in reports}
     if failed:
@@ -230,9 +232,12 @@ def _stop(running: list[Job], signum: int, reports: dict, failed: dict, echo) ->
         try:
             job.proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
         except subprocess.TimeoutExpired:
-            echo(f"{job.name} did not stop within {STOP_GRACE_SECONDS} s: killed")
             job.proc.kill()
             job.proc.wait()
+            failed[job.name] = f"did not stop within {STOP_GRACE_SECONDS} s: killed (it resumes from its last " \
+                               f"periodic checkpoint)"
+            echo(f"{job.name} {failed[job.name]}; log: {job.log}")
+            continue
         code = job.proc.returncode
         if code == 0:
             _finish(job, reports, failed, echo)

@@ -1,7 +1,8 @@
 """Rollout videos with the controller's state drawn on every frame.
 
 A base env that can render colour images exposes ``render_rgb(width, height,
-camera=None) -> uint8 [H, W, 3]``. :class:`EpisodeRecorder` collects one
+camera=None) -> uint8 [H, W, 3]`` (a camera it does not have: ``ValueError``,
+one line naming its cameras). :class:`EpisodeRecorder` collects one
 frame per simulated step (``ChunkedEnv`` feeds it) and labels each frame with
 what the DDP controller decided for the chunk being executed:
 

@@ -356,6 +356,44 @@ def test_an_env_that_fails_its_first_reset_is_closed_and_the_thread_count_kept(e
         torch.set_num_threads(before)
 
 
+def test_a_failing_close_after_a_failed_evaluation_keeps_the_first_error_and_every_cleanup(exp, tmp_path,
+                                                                                          monkeypatch):
+    """The evaluation's cleanup (bar, collector, env, thread count, background forecast) ran one step after
+    another: a close failing on a dead worker's broken pipe replaced the worker's own error and skipped the
+    thread-count restore and the wait for the last forecast."""
+    from torchrl.envs import SerialEnv
+
+    from ddp.envs.chunked import ChunkedEnv
+
+    close = SerialEnv.close
+    waited = []
+
+    def broken_close(self, *args, **kwargs):
+        close(self, *args, **kwargs)
+        torch.set_num_threads(3)  # as torchrl's close does
+        raise BrokenPipeError("worker pipe closed")
+
+    def fail(self, *args, **kwargs):
+        raise RuntimeError("camera did not answer")
+
+    monkeypatch.setattr(SerialEnv, "close", broken_close)
+    monkeypatch.setattr(ChunkedEnv, "_reset", fail)
+    ctrl = exp.make_controller()
+    monkeypatch.setattr(ctrl, "wait_forecast", lambda: waited.append(True))
+    from ddp.eval_runner import rollout_episodes
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        with pytest.warns(RuntimeWarning, match="evaluation cleanup: BrokenPipeError"), \
+                pytest.raises(RuntimeError, match="camera did not answer"):
+            rollout_episodes(exp, ctrl, episodes=2, seed=0, overrides={"max_episode_steps": 24}, num_envs=2,
+                             progress=False)
+        assert torch.get_num_threads() == 1 and waited == [True]
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_env_section_oracle_tracking_turns_the_controllers_tracker_off(exp, monkeypatch):
     """A recipe whose env section sets oracle_tracking: the env tracks in ood_tracking and ood_ddp_oracle,
     so the controller must not shift the end-effector too (it read only the protocol's overrides)."""
@@ -421,6 +459,9 @@ def test_a_video_camera_the_env_lacks_is_one_line_before_any_rollout(exp, tmp_pa
     monkeypatch.delattr(SyntheticReachEnv, "render_rgb")  # an env plugin that cannot render
     with pytest.raises(RecipeError, match=r"eval.video_camera: env 'synthetic_reach' cannot record videos"):
         exp.evaluate(["id"], episodes=1, output_dir=tmp_path, progress=False, video=True)
+    exp.recipe.eval.video_camera = None  # the default camera: refused all the same, before any rollout
+    with pytest.raises(RecipeError, match=r"eval.video_camera: env 'synthetic_reach' cannot record videos"):
+        exp.evaluate(["id", "id_ddp"], episodes=1, output_dir=tmp_path, progress=False, video=True)
 
 
 def test_object_hidden_at_ood_entry_is_tracked_once_seen(exp):
@@ -574,3 +615,31 @@ def test_async_forecast_error_surfaces_on_the_next_cycle(exp):
     with pytest.warns(RuntimeWarning, match="forecast failed and was dropped at close"):
         ctrl.close()
     del ctrl.model.imagine
+
+
+def test_an_evaluation_without_an_episode_length_names_what_to_set(exp):
+    """"set eval.max_steps" was the advice for an env config without a max_episode_steps field too, where
+    eval.max_steps is refused (it sets that field); and it named the section, not the key."""
+    import dataclasses
+
+    from ddp.errors import RecipeError
+    from ddp.eval_runner import _chunks_per_episode
+    from ddp.schema import Part
+
+    with pytest.raises(ValueError, match=r"max_episode_steps must be a number >= 1; got None"):
+        _chunks_per_episode(exp, {"max_episode_steps": None})  # the shipped envs' configs refuse it
+
+    @dataclasses.dataclass
+    class UnsetLength:  # a plugin's config that leaves it unset
+        max_episode_steps: int | None = None
+
+    @dataclasses.dataclass
+    class NoLength:
+        seed: int = 0
+
+    exp.parts["env"] = Part(exp.parts["env"].plugin, UnsetLength())
+    with pytest.raises(RecipeError, match=r"eval.max_steps: the episode length is not set"):
+        _chunks_per_episode(exp, {})
+    exp.parts["env"] = Part(exp.parts["env"].plugin, NoLength())
+    with pytest.raises(RecipeError, match=r"env: env 'synthetic_reach' has no max_episode_steps option"):
+        _chunks_per_episode(exp, {})

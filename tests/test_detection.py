@@ -295,6 +295,27 @@ def test_saved_rollouts_keep_a_success_nobody_judged(tmp_path):
     assert [(e["seed"], e["success"]) for e in back] == [(3, None), (4, True)]
 
 
+def test_rollouts_killed_mid_write_leave_the_earlier_file_whole(tmp_path, monkeypatch):
+    """detect_rollouts.npz was written in place: a kill mid-write left a truncated file that the next
+    ``ddp detect --rollouts`` refused, the rollouts lost."""
+    import numpy as np
+
+    import ddp.detection as detection
+
+    path = tmp_path / "detect_rollouts.npz"
+    detection.save_rollouts({"id": [{"seed": 3, "success": True, "disturbed": []}]}, path)
+
+    def killed(file, **arrays):
+        file.write(b"PK\x03\x04 half a zip")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(np, "savez_compressed", killed)
+    with pytest.raises(KeyboardInterrupt):
+        detection.save_rollouts({"id": [{"seed": 4, "success": False, "disturbed": []}]}, path)
+    assert [e["seed"] for e in detection.load_rollouts(path)["id"]] == [3]
+    assert [p.name for p in tmp_path.iterdir()] == ["detect_rollouts.npz"]  # no temp file left
+
+
 def test_a_threshold_the_episode_cap_can_never_reach_fails_before_rolling_out_more(tiny_recipe, monkeypatch):
     """alpha 0.01 with tau set on successful held-out episodes needs 99 of them, i.e. at least 197 episodes
     (every second one held out, the first included): above eval.max_calibration_episodes (160) it fails at

@@ -162,6 +162,14 @@ def _saving_job(tmp_path: Path, name: str, save_seconds: float, code: int, argv_
                tmp_path / name / "results.json")
 
 
+def _kill_left(jobs) -> None:
+    """Kill the stand-in jobs a failed test left running."""
+    for j in jobs:
+        if j.proc is not None and j.proc.poll() is None:
+            j.proc.kill()
+            j.proc.wait()
+
+
 def _stop_once_all_ready(tmp_path: Path, jobs, hung_up: list):
     """An echo that sends this process SIGTERM once every job is up, and from then on writes to a terminal
     that has hung up (OSError EIO), as after an ssh session closed."""
@@ -192,10 +200,7 @@ def test_a_hung_up_terminal_does_not_cut_the_stop_short(tmp_path):
             run_jobs(jobs, parallel=2, threads=1, echo=_stop_once_all_ready(tmp_path, jobs, []))
         assert [j.proc.returncode for j in jobs] == [143, 143]  # both saved and were waited for
     finally:
-        for j in jobs:
-            if j.proc is not None and j.proc.poll() is None:
-                j.proc.kill()
-                j.proc.wait()
+        _kill_left(jobs)
 
 
 def test_a_job_failing_while_it_stops_is_reported_failed_and_no_resume_is_named(tmp_path):
@@ -216,13 +221,35 @@ def test_a_job_failing_while_it_stops_is_reported_failed_and_no_resume_is_named(
         with pytest.raises(Preempted):
             run_jobs(jobs, parallel=2, threads=1, echo=echo)
     finally:
-        for j in jobs:
-            if j.proc is not None and j.proc.poll() is None:
-                j.proc.kill()
-                j.proc.wait()
+        _kill_left(jobs)
     text = "\n".join(lines)
     assert "saves stopped (exit 143" in text and "breaks failed while stopping (exit 2" in text, text
-    assert lines[-1].endswith("(rerun without --no-resume to resume)"), text
+    assert lines[-1].endswith("; failed: breaks (see above) (rerun without --no-resume to resume)"), text
+
+
+def test_a_job_killed_after_the_grace_time_is_reported_failed(tmp_path, monkeypatch):
+    """A job that did not save within the grace time was killed (SIGKILL: its save cut short) and reported as
+    "stopped (exit -9)", like one that saved; the closing line did not name it."""
+    import ddp.run_jobs as run_jobs_module
+    from ddp.preemption import Preempted
+
+    monkeypatch.setattr(run_jobs_module, "STOP_GRACE_SECONDS", 0.5)
+    jobs = [_saving_job(tmp_path, "saves", 0.1, 143), _saving_job(tmp_path, "hangs", 60, 143)]
+    lines: list[str] = []
+    stop = _stop_once_all_ready(tmp_path, jobs, [])
+
+    def echo(line: str) -> None:
+        lines.append(line)
+        stop(line) if line.startswith("started") else None  # (the folder's name has "killed" in it)
+
+    try:
+        with pytest.raises(Preempted):
+            run_jobs_module.run_jobs(jobs, parallel=2, threads=1, echo=echo)
+    finally:
+        _kill_left(jobs)
+    text = "\n".join(lines)
+    assert "saves stopped (exit 143" in text and "hangs did not stop within 0.5 s: killed" in text, text
+    assert "hangs stopped" not in text and lines[-1].endswith("; failed: hangs (see above) (the same command resumes)"), text
 
 
 def test_a_stopped_no_resume_run_says_how_to_resume(monkeypatch, capsys):
@@ -239,4 +266,12 @@ def test_a_stopped_no_resume_run_says_how_to_resume(monkeypatch, capsys):
     for flags, expected in (([], "the same command resumes training"),
                             (["--no-resume"], "rerun without --no-resume to resume training")):
         assert cli.main(["train", recipe, *flags]) == 128 + signal.SIGTERM
+        assert expected in capsys.readouterr().err
+
+    def interrupted(args):  # Ctrl-C: the case a person reads
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "cmd_train", interrupted)
+    for flags, expected in (([], "the same command resumes)"), (["--no-resume"], "rerun without --no-resume to resume)")):
+        assert cli.main(["train", recipe, *flags]) == 130
         assert expected in capsys.readouterr().err

@@ -703,7 +703,7 @@ def test_flowpolicy_overlay_trains_and_acts(tmp_path, monkeypatch):
     assert torch.isfinite(out["action"]).all()
 
 
-def test_a_suite_refuses_an_env_that_cannot_judge_success(suite_file, monkeypatch):
+def test_a_suite_refuses_an_env_that_cannot_judge_success(suite_file, monkeypatch, tmp_path):
     """A real robot's episodes carry no success verdict (None): the suite's tables would crash on them after the
     training, so the run stops before it trains, with one line."""
     from ddp.envs.synthetic_reach import SyntheticReachEnvConfig
@@ -725,3 +725,14 @@ def test_a_suite_refuses_an_env_that_cannot_judge_success(suite_file, monkeypatc
     exp.recipe.eval.env = {"table_points": 7}  # stands for {backend: real} on a Franka recipe
     with pytest.raises(DDPError, match=r"cannot judge success"):
         _check_judged(exp, run)
+    # a stale run re-evaluated (`--reevaluate`) is checked too, before its checkpoint is read (a TypeError on
+    # the unjudged success while its result was made, after the evaluation)
+    import dataclasses
+
+    import ddp.experiment as experiment_module
+    from ddp.suite.runner import _reevaluate_run
+
+    monkeypatch.setattr(experiment_module, "build", lambda recipe: exp)
+    again = dataclasses.replace(run, reevaluate=("id",))
+    with pytest.raises(DDPError, match=r"cannot judge success"):
+        _reevaluate_run(again, tmp_path, 0.0)

@@ -52,6 +52,7 @@ only the frames a chunked policy reads (``ddp.envs.chunked.chunk_render_config``
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -113,8 +114,9 @@ class ObservationOptions:
         if hasattr(self, "obs_every"):
             names += ("obs_every", "obs_history")
         for name in names:
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1; got {getattr(self, name)}")
+            value = getattr(self, name)
+            if not isinstance(value, numbers.Real) or value < 1:  # None, set from Python, was a TypeError here
+                raise ValueError(f"{name} must be a number >= 1; got {value!r}")
         if hasattr(self, "obs_every") and self.obs_history > self.obs_every:
             raise ValueError(f"obs_history ({self.obs_history}) must be <= obs_every ({self.obs_every})")
         lo, hi = self.crop_min, self.crop_max

@@ -82,16 +82,18 @@ def _summary(protocol: dict) -> dict:
     return out
 
 
-def _check_judged(exp, run: RunSpec) -> None:
+def _check_judged(exp, run: RunSpec, protocols=None) -> None:
     """A suite aggregates success rates: an env whose episodes a person judges (a real robot) has none to give.
-    Checked in the env each protocol runs in (``eval.env`` may put a simulated recipe on the robot)."""
+    Checked in the env each protocol (``protocols``, default the run's) runs in (``eval.env`` may put a
+    simulated recipe on the robot)."""
     from ddp.eval_runner import env_overrides, judges_success
     from ddp.protocols.base import get_protocol
 
     env = exp.parts.get("env")
     if env is None:
         return
-    protocols = list(run.protocols) if run.protocols else list(exp.recipe.eval.protocols)
+    if protocols is None:
+        protocols = list(run.protocols) if run.protocols else list(exp.recipe.eval.protocols)
     if not all(judges_success(exp, env_overrides(exp, get_protocol(p), exp.recipe.eval.max_steps))
                for p in protocols):
         raise DDPError(f"{run.run_id}: env '{env.plugin.name}' cannot judge success (a real robot: a person does), "
@@ -169,6 +171,7 @@ def _reevaluate_run(run: RunSpec, run_dir: Path, t0: float) -> dict:
         print(f"== {run.run_id} re-evaluating {', '.join(run.reevaluate)} from {ckpt}", flush=True)
         try:
             exp = build(run.recipe)
+            _check_judged(exp, run, list(run.reevaluate))  # before the checkpoint loads, as a run before training
             state = load_checkpoint(ckpt)
             trained_with = stored_recipe(ckpt, state)
             exp.load_checkpoint(ckpt, state=state)
