@@ -38,11 +38,15 @@ A displaced object is tracked (``a^track = Delta p``) when the subtask that targ
 in OOD mode: at the OOD onset, when the tracker first sees it move, or when its subtask begins; its
 recovery (``a^rec = -Delta p``) moves the end-effector only if it was tracked, by what the tracking shift
 executed (the env's ``ee_shift_applied``: a shift clipped at the workspace's edge is undone as clipped), and
-reality does not resume while a tracked object waits for its recovery, so the shifts of an episode sum to zero.
+reality does not resume while a tracked object waits for its recovery, so the shifts of an episode sum to zero
+once every tracked target's subtask has ended (a recipe's last subtask, without a trigger, ends with the
+episode: its tracking shift stays). A recovery clipped at the workspace's edge has nothing left to undo it: a
+warning says by how much the end-effector stays off.
 
 Nothing non-finite leaves it: observations are validated at the boundary
 (``ddp.safety.check_observation``); an environment whose observation or latents
-are not finite counts as OOD and acts from imagination when a forecast exists;
+are not finite counts as OOD and acts from imagination when a forecast exists (a forecast
+that came out non-finite counts as OOD too, D_R-I inf, and is not acted on);
 otherwise, or if the sampled actions are not finite, ``on_nonfinite`` decides:
 ``"raise"`` (a one-line :class:`~ddp.safety.NonFiniteError`) or ``"hold"`` (the
 env's hold action: zero motion, gripper command unchanged; ``("ddp", "held")``).
@@ -327,17 +331,22 @@ class DDPController(KeyedModule):
         """The env's ``ee_shift_applied`` (ChunkedEnv: the shift it executed, clipped to its workspace) for the
         last cycle's request: what clipping cut from it is taken from that cycle's a^track, so the object's
         a^rec undoes the shift that happened. Without the key the requested shift counts as executed."""
+        import warnings
+
         applied = td.get(self.key("ee_shift_applied"), None)
         for b, s in enumerate(self.states):
-            if applied is not None and s.last_track is not None and s.last_shift is not None:
+            if applied is not None and s.last_shift is not None:
                 done = applied[b].float().cpu().reshape(-1)
-                if done.shape == (3,) and bool(torch.isfinite(done).all()):
-                    s.followed[s.last_track] = s.followed[s.last_track] + done - s.last_shift
-                else:  # an env reporting NaN / inf: its shift must not reach a recovery (nor a robot)
-                    import warnings
-
+                if not (done.shape == (3,) and bool(torch.isfinite(done).all())):
+                    # an env reporting NaN / inf: its shift must not reach a recovery (nor a robot)
                     warnings.warn(f"controller: env {b} reported ee_shift_applied {done.tolist()}; the requested "
                                   f"shift counts as executed", RuntimeWarning, stacklevel=3)
+                elif s.last_track is not None:
+                    s.followed[s.last_track] = s.followed[s.last_track] + done - s.last_shift
+                elif not torch.allclose(done, s.last_shift, atol=1e-6):  # a recovery alone: nothing left to undo it
+                    warnings.warn(f"controller: env {b}: the recovery shift {s.last_shift.tolist()} executed as "
+                                  f"{done.tolist()} (clipped at the workspace's edge); the end-effector stays "
+                                  f"{(s.last_shift - done).tolist()} off", RuntimeWarning, stacklevel=3)
             s.last_track = s.last_shift = None
 
     def _subtask_ended(self, s: EnvState, obs, chunk: int) -> bool:
@@ -495,10 +504,19 @@ class DDPController(KeyedModule):
         # what detectors score: the real window and its forecast (NaN before the first forecast)
         nan = torch.full_like(real[0], float("nan"))
         predicted = torch.stack([s.predicted[-M:].to(real) if s.predicted is not None else nan for s in self.states])
+        # a forecast that came out non-finite (the world model's fault) is no "forecast yet": a detector reading
+        # its NaN D_R-I as one would never alarm again; it is OOD, acted on from real latents (nothing to imagine)
+        broken = torch.tensor([s.predicted is not None and not bool(torch.isfinite(s.predicted).all())
+                               for s in self.states])
+        for b in torch.nonzero(broken).flatten().tolist():
+            import warnings
+
+            warnings.warn(f"controller: environment {b}: the world model's forecast is not finite; this cycle counts "
+                          f"as OOD and acts from the real latents", RuntimeWarning, stacklevel=2)
         # D_R-I = ||O_real - O_pred||^2 over the M latest frames and the latent dims (the paper's statistic);
-        # a non-finite observation reads inf
+        # a non-finite observation or forecast reads inf
         discrepancy = residual_score(real, predicted, ScoreSpec()).float().cpu()
-        td.set(self.key("discrepancy"), torch.where(finite, discrepancy, torch.tensor(float("inf"))))
+        td.set(self.key("discrepancy"), torch.where(finite & ~broken, discrepancy, torch.tensor(float("inf"))))
         td.set(self.key("latent_real"), real.float().to(env_device))
         td.set(self.key("latent_pred"), predicted.float().to(env_device))
         td.set(self.key("point_dims"), torch.full((B,), self.model.point_dims, dtype=torch.int64))
@@ -548,7 +566,7 @@ class DDPController(KeyedModule):
 
         # 1. OOD detection & tracking
         ood_now = self.detector(td).get(self.detector.key("ood")).reshape(B).tolist()
-        ood_now = [bool(o) or not bool(finite[b]) for b, o in enumerate(ood_now)]  # non-finite input: OOD
+        ood_now = [bool(o) or not bool(finite[b]) or bool(broken[b]) for b, o in enumerate(ood_now)]  # non-finite: OOD
         for b, s in enumerate(self.states):
             # a non-sticky detector (oracle, substitution) enters OOD once there is a forecast to imagine from,
             # or at once for a controller that does not imagine (the DP3 ablation: tracking on real latents)
@@ -635,8 +653,8 @@ class DDPController(KeyedModule):
             if self.forecast_every_cycle:  # now, or in the background while the chunk executes
                 self._forecast_next()
 
-        for b, s in enumerate(self.states):
-            s.last_shift = ee_shift[b].clone() if s.last_track is not None else None
+        for b, s in enumerate(self.states):  # read back next cycle (ee_shift_applied)
+            s.last_shift = ee_shift[b].clone() if s.last_track is not None or bool(ee_shift[b].any()) else None
         td.set(self.key("action"), actions.to(env_device))
         td.set(self.key("ee_shift"), ee_shift)
         td.set(self.key("held"), torch.tensor(held))

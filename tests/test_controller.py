@@ -56,6 +56,21 @@ def test_never_detector_acts_from_reality(exp):
     assert (r["ddp", "mode"] == 0).all()
 
 
+def test_a_non_finite_forecast_is_ood_not_a_silent_detector(exp, monkeypatch):
+    """A world model whose forecast came out NaN made D_R-I NaN, which the discrepancy detector reads as "no
+    forecast yet": detection was off for the rest of the episode, without a word. Now such a cycle is OOD
+    (D_R-I inf, a warning) and acts from the real latents; nothing non-finite reaches the env."""
+    ctrl = exp.make_controller(detector={"name": "discrepancy", "tau": 1e30})  # no finite D_R-I reaches it
+    imagine = ctrl.model.imagine
+    monkeypatch.setattr(ctrl.model, "imagine", lambda *a, **k: torch.full_like(imagine(*a, **k), float("nan")))
+    with pytest.warns(RuntimeWarning, match="environment 0: the world model's forecast is not finite"):
+        r = rollout(exp, ctrl, chunks=4)
+    assert r["ddp", "mode"].tolist() == [0, 1, 1, 1] and not r["ddp", "imagined"].any()
+    assert torch.isinf(r["ddp", "discrepancy"][1:]).all() and torch.isfinite(r["action"]).all()
+    monkeypatch.setattr(ctrl.model, "imagine", imagine)  # a finite forecast: ID under this tau
+    assert rollout(exp, ctrl, chunks=4)["ddp", "mode"].tolist() == [0, 0, 0, 0]
+
+
 def test_open_loop_imagination_after_the_first_chunk(exp):
     r = rollout(exp, exp.make_controller(detector={"name": "substitution", "p": 1.0}, tracker=False))
     assert r["ddp", "imagined"].tolist() == [False] + [True] * 7

@@ -450,6 +450,26 @@ def test_a_tracking_shift_cut_by_the_workspace_is_undone_as_executed(tiny_recipe
     assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
 
 
+def test_a_recovery_cut_by_the_workspace_is_reported(tiny_recipe):
+    """A recovery shift clipped at the workspace's edge has no later shift to undo it: the end-effector stayed
+    off without a word (only tracking shifts were read back). Now a warning says by how much."""
+    exp = make_exp(tiny_recipe)
+    env = make_chunked_env(exp, seed=0)
+
+    def clipped(delta, safe_lift=0.0):
+        applied = np.maximum(np.asarray(delta, dtype=np.float64), -0.05)  # the recovery's -x cut at -0.05
+        env.base.ee = env.base.ee + applied
+        env.base.ee_offset = env.base.ee_offset + applied
+        return applied
+
+    env.base.shift_end_effector = clipped
+    with pytest.warns(RuntimeWarning, match=r"env 0: the recovery shift \[-0.2.*executed as \[-0.05.*stays "
+                                            r"\[-0.15"):
+        r = rollout(exp, exp.make_controller(), env=env)
+    assert shifts(r)[2] == DELTA and shifts(r)[4] == [-d for d in DELTA]
+    assert r["next", "privileged", "ee_offset"][-1].tolist() == pytest.approx([0.15, 0.0, 0.0], abs=1e-6)
+
+
 def test_the_dp3_ablation_tracks_and_recovers_with_the_oracle_detector(tiny_recipe):
     """No world model (the DP3 ablation, ood_tracking with the controller's own tracker): the oracle detector's
     OOD starts tracking at once, though no forecast can ever exist, and the recovery undoes it."""
