@@ -17,7 +17,9 @@ controller). From these :func:`detection_metrics` counts, per protocol:
   undisturbed chunk);
 * AUROC of the statistic at the first visible chunk and the chunks after it,
   against the ID statistic at the same chunk index (the detector's held-out
-  calibration episodes).
+  calibration episodes), over the chunks whose forecast was made from real
+  latents (after an alarm the controller forecasts from its own imagination,
+  several steps open loop, which no 1-step ID forecast compares with).
 
 :func:`detect` is the offline comparison behind ``ddp detect``: one set of ID
 calibration rollouts, ID test rollouts and disturbed rollouts of the base
@@ -101,6 +103,9 @@ def _auroc_after_visible(episodes: list[dict], reference: list[list[float]] | No
             trace = ep.get(key)
             if v is None or trace is None or v + k >= len(trace):
                 continue
+            imagined = ep.get("imagined")
+            if imagined is not None and v + k >= 1 and imagined[v + k - 1]:
+                continue  # its forecast came from imagined latents (after an alarm): no 1-step ID forecast's peer
             by_chunk.setdefault(v + k, []).append(trace[v + k])
         # every (disturbed, ID) pair at the same chunk index, each pair once
         pairs = [(auroc(neg, pos), sum(1 for x in pos if x == x) * sum(1 for x in neg if x == x))
@@ -319,6 +324,9 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
         id_alarms = [first_above(s, cal.tau) for s in stats["id"]]
         row["id_false_alarm_episodes"] = sum(a is not None for a in id_alarms)
         row["id_episodes"] = len(id_alarms)
+        # the episodes alpha bounds where tau is set on the successful ones: those, apart
+        nominal = [a for a, ep in zip(id_alarms, test["id"]) if ep.get("success")]
+        row["id_false_alarm_successful"], row["id_successful"] = sum(a is not None for a in nominal), len(nominal)
         for name in disturbances:
             eps = [{**ep, "score": s} for ep, s in zip(test[name], stats[name])]
             delays, early, missed = [], 0, 0
@@ -410,10 +418,13 @@ def format_detect(rep: dict) -> str:
         for name in rep["disturbances"]:
             r = row[name]
             au = "/".join(fmt_num(a, "{:.2f}") for a in (r["auroc_after_visible"] or []))
+            id_fa = f"{row['id_false_alarm_episodes']}/{row['id_episodes']}"
+            if row.get("threshold_on") == "successful" and "id_successful" in row:
+                id_fa += f" ({row['id_false_alarm_successful']}/{row['id_successful']} successful)"
             lines.append(
                 f"| {row['score']} | {name} | {au} | {r['detected']}/{r['episodes']} ({r['detected_within_1']}) | "
                 f"{fmt_num(r['median_delay'], '{:.1f}')} | {r['missed']} | {r['alarm_before_visible']} | "
-                f"{row['id_false_alarm_episodes']}/{row['id_episodes']} | {fmt_num(row['tau'])} |"
+                f"{id_fa} | {fmt_num(row['tau'])} |"
             )
     return "\n".join(lines) + "\n"
 

@@ -24,7 +24,7 @@ def protocol_result(episodes: list[dict], *, seconds: float, thresholds: dict, v
         "tau": thresholds.get("tau"),
         "alpha": thresholds.get("alpha"),
         # how the threshold was calibrated (the per-chunk reference itself stays beside the checkpoint); None
-        # where nothing was (a tau given in the recipe)
+        # where nothing was fitted (a tau given in the recipe for a statistic without a reference)
         "calibration": ({k: thresholds[k] for k in CALIBRATION_FIELDS if k in thresholds}
                         if thresholds.get("fit_episodes") or thresholds.get("threshold_episodes") else None),
         "per_episode": episodes,

@@ -119,6 +119,30 @@ def test_tau_is_set_on_successful_held_out_episodes_and_more_are_asked_for():
         DiscrepancyConfig(threshold_on="succesful")
 
 
+def test_unjudged_calibration_episodes_fail_at_once_under_successful_selection():
+    """A real robot's episodes carry success None: threshold_on: successful took them as failures, asked for
+    150 more episodes (each an operator's reset) and then failed, or said the policy does not solve its task."""
+    eps = episodes_from_scores(np.ones((20, 4)), success=np.ones(20, bool))
+    for e in eps:
+        e["success"] = None
+    spec = ScoreSpec(per_chunk=True, window=0, chunk_quantile=0.9)
+    with pytest.raises(ValueError, match=r"not judged .*threshold_on: successful cannot select .*"
+                                         r"set controller.detector.threshold_on: all"):
+        fit_calibration(eps, spec, alpha=0.1, threshold_on="successful")
+    with pytest.raises(ValueError, match=r"fit_on: successful cannot select"):
+        fit_calibration(eps, spec, alpha=0.1, fit_on="successful")
+    assert fit_calibration(eps, spec, alpha=0.1).threshold_episodes == 10  # all / all: nothing to select
+
+
+def test_a_given_tau_reports_the_episodes_its_reference_was_fitted_on():
+    """With tau in the recipe, a per-chunk statistic still fits its reference, on every ID episode: it reported
+    fit_episodes 0, so results.json's calibration read null, as if nothing had been fitted."""
+    eps = episodes_from_scores(np.random.default_rng(0).gamma(2.0, 0.5, size=(12, 4)), success=np.ones(12, bool))
+    cal = fit_calibration(eps, ScoreSpec(per_chunk=True, window=0, chunk_quantile=0.9), alpha=0.1, tau=2.0)
+    assert cal.chunk_scale is not None and cal.fit_episodes == 12 and cal.threshold_episodes == 0
+    assert fit_calibration(eps, ScoreSpec(), alpha=0.1, tau=2.0).fit_episodes == 0  # plain D_R-I: nothing fitted
+
+
 def test_fit_on_successful_fits_the_phase_scale_on_nominal_episodes_only():
     """fit_on: successful: a failing fitting episode's wandering residual does not raise its phase's scale (the
     default fits on every fitting episode)."""
@@ -422,6 +446,14 @@ def test_detection_metrics_count_delays_misses_and_false_alarms():
                  {"seed": 1, "mode": [0] * 4, "disturbed": [0, 0, 0, 1], "score": [math.nan, 0.5, 0.5, 0.5]}]
     m = detection_metrics(staggered, reference=[[math.nan, 0.1, 0.5, 0.9], [math.nan, 0.2, 0.5, 1.0]], horizon=1)
     assert m["auroc_after_visible"][0] == pytest.approx(0.5)  # (2 + 0) of 4 pairs (pooled over chunks: 5 / 8)
+    # after an alarm the controller forecasts from its imagination: those chunks' statistic (many steps open
+    # loop) has no peer among 1-step ID forecasts, and inflated the AUROC at visible + k
+    alarmed = [{"seed": 0, "mode": [0, 0, 1, 1, 1], "imagined": [0, 0, 1, 1, 1], "disturbed": [0, 0, 1, 1, 1],
+                "score": [math.nan, 0.1, 0.15, 5.0, 5.0]},
+               {"seed": 1, "mode": [0, 0, 0, 0, 0], "imagined": [0] * 5, "disturbed": [0, 0, 1, 1, 1],
+                "score": [math.nan, 0.1, 0.15, 0.15, 0.15]}]
+    m = detection_metrics(alarmed, reference=[[math.nan, 0.1, 0.2, 0.2, 0.2], [math.nan, 0.2, 0.1, 0.1, 0.1]])
+    assert m["auroc_after_visible"][:3] == pytest.approx([0.5, 0.5, 0.5])  # seed 0 counts at chunk 2 only
 
 
 # ----------------------------------------------------------------------------------------- controller
@@ -559,6 +591,22 @@ def test_ddp_detect_cli_writes_the_comparison(tiny_recipe, tmp_path):
     assert rep2["first_visible"] == {"ood_base": [3, 3]}
     assert main(["detect", "--checkpoint", ckpt, "--rollouts", saved, "--disturbances", "occlusion",
                  "--quiet"]) == 2  # not in the saved rollouts: one line
+
+
+def test_detect_table_counts_false_alarms_over_the_episodes_alpha_bounds():
+    """With tau set on the successful held-out episodes, alpha bounds false alarms over successful ID
+    episodes: the table's one count over every ID test episode read a failing episode's alarm as a breach."""
+    from ddp.detection import format_detect
+
+    row = {"score": "paper", "tau": 1.0, "threshold_on": "successful", "id_false_alarm_episodes": 3,
+           "id_episodes": 10, "id_false_alarm_successful": 1, "id_successful": 8,
+           "ood_base": {"episodes": 10, "detected": 9, "detected_within_1": 9, "median_delay": 0.0, "missed": 1,
+                        "alarm_before_visible": 0, "auroc_after_visible": [1.0, 1.0, 1.0]}}
+    rep = {"recipe": "r", "alpha": 0.1, "calibration_episodes": 40, "episodes": 10, "seed": 0, "env": {},
+           "disturbances": ["ood_base"], "rows": [row]}
+    assert "| 3/10 (1/8 successful) |" in format_detect(rep)
+    row["threshold_on"] = "all"  # alpha over every episode: one count
+    assert "| 3/10 |" in format_detect(rep)
 
 
 def test_forecast_samples_give_a_mean_forecast_and_its_spread(tiny_recipe):

@@ -22,8 +22,11 @@ same two latent windows (``real``, ``pred``: ``[..., M, D]``):
   divides by the phase's ID tail instead of its middle, which evens out
   phases whose ID scores are spread wide around a small median;
 * ``cusum``: evidence accumulated over chunks, ``S_t = max(0, S_{t-1} + s_t
-  - drift)`` on the normalised score (the ID median is 1), reset after an
-  alarm; a persistent moderate excess then fires as surely as one large one.
+  - drift)`` on the normalised score (the ID median is 1); a persistent
+  moderate excess then fires as surely as one large one. The online detector
+  restarts it at tau / 2 after an alarm (``DiscrepancyDetector``); the offline
+  statistic here does not restart, so traces after the first alarm differ
+  while the first alarm is the same.
 
 :class:`ScoreCalibration` fits the reference statistics on one part of the ID
 calibration episodes (:func:`split_fit`) and sets the threshold on the other
@@ -282,6 +285,14 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
         raise ValueError(f"threshold_on must be one of {', '.join(THRESHOLD_ON)}; got {threshold_on!r}")
     if fit_on not in THRESHOLD_ON:
         raise ValueError(f"fit_on must be one of {', '.join(THRESHOLD_ON)}; got {fit_on!r}")
+    selects = tau is None  # with tau given, every episode fits the reference (fit_on has nothing to select)
+    unjudged = [on for on, value in (("threshold_on", threshold_on), ("fit_on", fit_on))
+                if selects and value == "successful"]
+    if unjudged and any("success" in e and e["success"] is None for e in episodes):
+        # a real robot's episodes: taken as failures, they asked for ever more episodes, then failed anyway
+        raise ValueError(f"the ID calibration episodes' success was not judged (a real robot), so "
+                         f"{' and '.join(f'{on}: successful' for on in unjudged)} cannot select successful ones; "
+                         f"set controller.detector.{unjudged[0]}: all")
     n = len(episodes)
     if n < 2 and spec.needs_reference and tau is None:
         raise ValueError(f"calibrating this score needs at least 2 ID episodes; got {n}")
@@ -299,8 +310,9 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
                                  "successful); set controller.detector.fit_on: all")
             fit = [e for e in fit if e["success"]]
         n_fit = len(fit)
-    else:
-        fit, held, n_fit = list(episodes), list(episodes), 0
+    else:  # tau given: the reference (if any) is fitted on every episode, and is their in-sample ID side
+        fit, held = list(episodes), list(episodes)
+        n_fit = n if spec.needs_reference else 0
     if tau is None and not held:
         raise ValueError(f"no ID episodes left for the threshold ({n} episodes, {n_fit} used to fit the score)")
     if tau is None and threshold_on == "successful":
