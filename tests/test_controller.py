@@ -128,11 +128,16 @@ def test_per_chunk_calibration_reaches_every_protocol(exp, tmp_path):
     assert len(cal["chunk_scale"]) == first["per_episode"][0]["chunks"]  # one per chunk index seen
     assert (tmp_path / "discrepancy_ood_ddp.png").exists()
     assert "detection" in first and "Detection" in (tmp_path / "table.md").read_text()
-    # results.json says how tau was calibrated (and nothing for a tau the recipe gives)
+    # results.json says how tau was calibrated: with a tau the recipe gives, the per-chunk reference is still
+    # fitted, on every calibration episode; nothing at all for the plain D_R-I
     stored = json.loads((tmp_path / "results.json").read_text())["protocols"]["ood_ddp"]["calibration"]
     assert stored["fit_episodes"] == stored["threshold_episodes"] == 2 and stored["threshold_on"] == "all"
     exp.parts["controller.detector"].config.tau = 1.0
     rep = exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path / "fixed", progress=False)
+    fixed = rep["protocols"]["ood_ddp"]
+    assert fixed["tau"] == 1.0 and (fixed["calibration"]["fit_episodes"], fixed["calibration"]["threshold_episodes"]) == (4, 0)
+    exp.parts["controller.detector"].config.per_chunk = False
+    rep = exp.evaluate(["ood_ddp"], episodes=1, output_dir=tmp_path / "plain", progress=False)
     assert rep["protocols"]["ood_ddp"]["calibration"] is None and rep["protocols"]["ood_ddp"]["tau"] == 1.0
 
 
@@ -581,9 +586,14 @@ def test_background_forecast_keeps_the_thread_count_copies_and_follows_a_swapped
     torch.set_num_threads(threads)
     try:
         ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True)
+        during = []  # the forecast itself runs single-threaded (a second OpenMP team slows the main thread)
+        imagine = ctrl.model.imagine
+        ctrl.model.imagine = lambda *a, **k: during.append(torch.get_num_threads()) or imagine(*a, **k)
         env = make_chunked_env(exp, seed=0)
         td = ctrl(env.reset())
         ctrl.wait_forecast()
+        assert during == [1]
+        ctrl.model.imagine = imagine
         seen = []  # single-threaded only while the forecast ran: here, and in threads started later
         later = threading.Thread(target=lambda: seen.append(torch.get_num_threads()))
         later.start()

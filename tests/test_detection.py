@@ -119,6 +119,18 @@ def test_tau_is_set_on_successful_held_out_episodes_and_more_are_asked_for():
         DiscrepancyConfig(threshold_on="succesful")
 
 
+def test_the_per_chunk_scale_pools_the_chunks_around_each_one():
+    """The default window (1): the phase scale at chunk c is the ID median over chunks c-1 .. c+1 of the fitting
+    episodes (every value-checking test used window 0, where pooling is never exercised)."""
+    from ddp.detectors.scores import split_fit
+
+    scores = np.random.default_rng(3).gamma(2.0, 0.5, size=(20, 6))
+    cal = fit_calibration(episodes_from_scores(scores), ScoreSpec(per_chunk=True), alpha=0.2)
+    fit = scores[np.array(split_fit(20, 0.5))]
+    assert cal.chunk_scale == pytest.approx([float(np.median(fit[:, max(0, c - 1):c + 2])) for c in range(6)],
+                                            rel=1e-6)
+
+
 def test_unjudged_calibration_episodes_fail_at_once_under_successful_selection():
     """A real robot's episodes carry success None: threshold_on: successful took them as failures, asked for
     150 more episodes (each an operator's reset) and then failed, or said the policy does not solve its task."""
@@ -437,6 +449,9 @@ def test_detection_metrics_count_delays_misses_and_false_alarms():
     assert alarmed_before_visible({"first_visible": 3, "mode": "01111"})  # a suite result's trace
     assert [e["delay"] for e in m["per_episode"]] == [1, 0, None, None, None]
     assert m["episodes_with_false_alarm"] == 2  # seed 3 (clean) and seed 4 (before its disturbance)
+    late = {"seed": 6, "mode": [0, 0, 0, 0, 0, 1], "disturbed": [0, 0, 1, 1, 1, 1], "score": [math.nan] * 6}
+    skewed = detection_metrics([eps[1], eps[1], late])  # delays 0, 0, 3
+    assert skewed["median_delay"] == 0.0 and skewed["mean_delay"] == 1.0
     assert m["false_alarms_per_id_chunk"] == pytest.approx(2 / (5 + 2 + 2 + 2 + 3))
     # at first visibility: disturbed scores 0.2, 0.8, 0.1, 0.1 against ID 0.1 / 0.2 at those chunks
     assert m["auroc_after_visible"][0] == pytest.approx(auroc([0.1, 0.2] * 3 + [0.1, 0.2], [0.2, 0.8, 0.1, 0.1]))
@@ -578,6 +593,8 @@ def test_ddp_detect_cli_writes_the_comparison(tiny_recipe, tmp_path):
     assert rep["first_visible"]["ood_base"] == [3, 3]  # displaced before chunk 2's actions, seen at chunk 3
     row = rep["rows"][0]
     assert row["ood_base"]["episodes"] == 2 and row["id_episodes"] == 2 and row["tau"] > 0
+    # alpha's own count, over the successful ID test episodes: none of the untrained policy's
+    assert row["id_successful"] == sum(rep["success"]["id"]) == 0 and row["id_false_alarm_successful"] == 0
     assert "| paper | ood_base |" in (out / "detect.md").read_text()
     assert (out / "detect_paper.png").stat().st_size > 0
     assert main(["detect", "--checkpoint", str(tmp_path / "run" / "last.pt"), "--scores", "papr"]) == 2

@@ -99,5 +99,20 @@ def test_a_discrepancy_trace_is_drawn_when_the_detector_statistic_is_all_nan(tmp
                "discrepancy": [nan, 0.2, 1.5, 0.3], "mode": [0, 0, 1, 0], "disturbed": [False, True, True, True]}
     report = {"recipe": "tiny", "episodes": 1, "protocols": {"ood_ddp": {
         "success_rate": 1.0, "successes": 1, "episodes": 1, "per_episode": [episode], "detection": {}, "tau": 1.0}}}
-    paths = plot_report(report, tmp_path)
+    from matplotlib.axes import Axes
+
+    drawn = []
+    plot = Axes.plot
+
+    def record(self, *args, **kwargs):
+        drawn.append((list(args[1]) if len(args) > 1 else None, kwargs.get("label")))
+        return plot(self, *args, **kwargs)
+
+    Axes.plot = record
+    try:
+        paths = plot_report(report, tmp_path)
+    finally:
+        Axes.plot = plot
     assert tmp_path / "discrepancy_ood_ddp.png" in paths and (tmp_path / "discrepancy_ood_ddp.png").stat().st_size
+    traces = [(ys, label) for ys, label in drawn if label == "$D_{R-I}$"]  # the D_R-I values, not the NaN scores
+    assert len(traces) == 1 and traces[0][0][1:] == [0.2, 1.5, 0.3] and math.isnan(traces[0][0][0])
