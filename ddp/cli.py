@@ -170,8 +170,10 @@ def _detect(args) -> int:
 
     from ddp import results_json
     from ddp.atomic_file import atomic_write
+    from ddp.calibration_file import model_digest
     from ddp.detection import (
-        SCORE_VARIANTS, detect, format_detect, load_rollouts, plot_detect, save_rollouts, summary_json,
+        SCORE_VARIANTS, detect, format_detect, load_rollouts, plot_detect, rollouts_provenance, save_rollouts,
+        summary_json,
     )
     from ddp.errors import suggest
     from ddp.experiment import build, experiment_from_checkpoint
@@ -197,14 +199,18 @@ def _detect(args) -> int:
     from ddp.protocols.base import check_protocols
 
     check_protocols(disturbances, source="--disturbances")
-    rollouts = None
+    rollouts = made_with = None
     if args.rollouts:
         if not Path(args.rollouts).is_file():
             raise DDPError(f"--rollouts: no such file: {args.rollouts}")
         try:
-            rollouts = load_rollouts(args.rollouts)
+            rollouts, made_with = load_rollouts(args.rollouts), rollouts_provenance(args.rollouts)
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:  # a truncated or foreign .npz
             raise DDPError(f"--rollouts: {args.rollouts} is not a ddp detect rollouts file ({err})") from None
+        if made_with is not None and made_with.get("model") != model_digest(exp.model):
+            raise DDPError(f"--rollouts: {args.rollouts} was rolled out with other weights (digest "
+                           f"{made_with.get('model')}; this checkpoint's {model_digest(exp.model)}): drop --rollouts "
+                           f"to roll out this one")
     try:
         # the recipe detector's alpha (what its evaluations calibrate to), unless --alpha says otherwise
         alpha = args.alpha if args.alpha is not None else getattr(exp.parts["controller.detector"].config, "alpha", 0.05)
@@ -214,10 +220,14 @@ def _detect(args) -> int:
                      samples=args.samples, rollouts=rollouts, threshold_on=args.threshold_on)
     except ValueError as err:
         raise DDPError(str(err)) from None
+    made = ("seed", "env", "forecast_samples")
+    if rollouts is not None and made_with is not None:  # the header says how the scored rollouts were made
+        rep.update({k: made_with[k] for k in made if k in made_with})
     out = Path(args.output_dir or Path(args.checkpoint).parent / "detect")
     out.mkdir(parents=True, exist_ok=True)
     if rollouts is None:
-        save_rollouts(rep["rollouts"], out / "detect_rollouts.npz")
+        save_rollouts(rep["rollouts"], out / "detect_rollouts.npz",
+                      provenance={"model": model_digest(exp.model), **{k: rep[k] for k in made}})
     for name, text in (("detect.json", results_json.dumps(summary_json(rep))),
                        ("detect_traces.json", results_json.dumps(rep["traces"], indent=None)),
                        ("detect.md", format_detect(rep))):

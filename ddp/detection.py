@@ -365,10 +365,19 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
 _EPISODE_ARRAYS = ("latent_real", "latent_pred", "latent_pred_std")
 
 
-def save_rollouts(rollouts: dict, path) -> None:
+#: the ``.npz`` entry holding what the rollouts were made with (JSON text as bytes: a plain array)
+PROVENANCE_KEY = "provenance"
+
+
+def save_rollouts(rollouts: dict, path, provenance: dict | None = None) -> None:
     """The latent windows, disturbance flags and success of every rollout, as one compressed ``.npz``
-    (plain arrays: loading it runs no code)."""
+    (plain arrays: loading it runs no code); ``provenance`` (plain JSON values: the model's weights digest,
+    seed, env overrides, forecast samples) is stored beside them (:func:`rollouts_provenance`)."""
+    import json
+
     arrays = {}
+    if provenance is not None:
+        arrays[PROVENANCE_KEY] = np.frombuffer(json.dumps(provenance, sort_keys=True).encode(), dtype=np.uint8)
     for name, eps in rollouts.items():
         for i, ep in enumerate(eps):
             for key in _EPISODE_ARRAYS:
@@ -386,6 +395,8 @@ def load_rollouts(path) -> dict:
     out: dict[str, dict[int, dict]] = {}
     with np.load(path, allow_pickle=False) as data:
         for key in data.files:
+            if key == PROVENANCE_KEY:
+                continue
             name, i, field = key.rsplit("/", 2)
             ep = out.setdefault(name, {}).setdefault(int(i), {})
             value = data[key]
@@ -396,6 +407,17 @@ def load_rollouts(path) -> dict:
             else:
                 ep[field] = value.astype(np.float64)
     return {name: [eps[i] for i in sorted(eps)] for name, eps in out.items()}
+
+
+def rollouts_provenance(path) -> dict | None:
+    """What :func:`save_rollouts` stored about how the rollouts were made; None for a file written without
+    (before 2026-12-05)."""
+    import json
+
+    with np.load(path, allow_pickle=False) as data:
+        if PROVENANCE_KEY not in data.files:
+            return None
+        return json.loads(data[PROVENANCE_KEY].tobytes().decode())
 
 
 def format_detect(rep: dict) -> str:

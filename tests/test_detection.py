@@ -606,6 +606,16 @@ def test_ddp_detect_cli_writes_the_comparison(tiny_recipe, tmp_path):
     rep2 = json.loads((again / "detect.json").read_text())
     assert rep2["rows"][0]["tau"] == row["tau"] and rep2["rows"][0]["ood_base"] == row["ood_base"]
     assert rep2["first_visible"] == {"ood_base": [3, 3]}
+    # the header tells how the scored rollouts were made, not what this command's flags say (it said seed 0
+    # and no env overrides here), and rollouts of other weights are refused (nothing checked they matched)
+    from ddp.detection import load_rollouts, rollouts_provenance, save_rollouts
+
+    assert (rep2["seed"], rep2["env"]) == (rep["seed"], {"displacement_chunk": 2})
+    made = rollouts_provenance(saved)
+    other = str(tmp_path / "other.npz")
+    save_rollouts(load_rollouts(saved), other, provenance={**made, "model": "0" * 16})
+    assert main(["detect", "--checkpoint", ckpt, "--rollouts", other, "--alpha", "0.5", "--threshold-on", "all",
+                 "--scores", "paper", "--disturbances", "ood_base", "--output-dir", str(again), "--quiet"]) == 2
     assert main(["detect", "--checkpoint", ckpt, "--rollouts", saved, "--disturbances", "occlusion",
                  "--quiet"]) == 2  # not in the saved rollouts: one line
 
