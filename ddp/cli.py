@@ -11,7 +11,7 @@ import zipfile
 from pathlib import Path
 
 from ddp.errors import DDPError
-from ddp.preemption import Preempted, stop_signals
+from ddp.preemption import Preempted, resume_hint, stop_signals
 
 
 def _add_recipe_args(p: argparse.ArgumentParser, optional: bool = False) -> None:
@@ -577,20 +577,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"ddp: error: {err}", file=sys.stderr)
         return 2
     except Preempted as err:
-        _say(f"ddp: {err} (a training run saved its checkpoint, an evaluation closed its envs; {_again(args)} "
-             f"training)")
+        again = resume_hint(getattr(args, "no_resume", False))
+        _say(f"ddp: {err} (a training run saved its checkpoint, an evaluation closed its envs; {again} training)")
         return 128 + err.signum
     except BrokenPipeError:  # `ddp list | head`: the reader left; no traceback
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
     except KeyboardInterrupt:
-        _say(f"ddp: interrupted (a checkpoint was written where training was running; {_again(args)})")
+        again = resume_hint(getattr(args, "no_resume", False))
+        _say(f"ddp: interrupted (a checkpoint was written where training was running; {again})")
         return 130
-
-
-def _again(args) -> str:
-    """How a stopped command goes on: --no-resume again would set the checkpoint just saved aside."""
-    return "rerun without --no-resume to resume" if getattr(args, "no_resume", False) else "the same command resumes"
 
 
 def _say(message: str) -> None:

@@ -57,6 +57,7 @@ latents and the hold chunk), so the next cycle has a D_R-I and can imagine.
 from __future__ import annotations
 
 import inspect
+import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -232,8 +233,6 @@ class DDPController(KeyedModule):
         job, self._job = getattr(self, "_job", None), None
         error = job[1].exception() if job is not None else None  # waits for it
         if error is not None:
-            import warnings
-
             warnings.warn(f"controller: the last background world-model forecast failed and was dropped at "
                           f"{when}: {error!r}", RuntimeWarning, stacklevel=3)
 
@@ -331,8 +330,6 @@ class DDPController(KeyedModule):
         """The env's ``ee_shift_applied`` (ChunkedEnv: the shift it executed, clipped to its workspace) for the
         last cycle's request: what clipping cut from it is taken from that cycle's a^track, so the object's
         a^rec undoes the shift that happened. Without the key the requested shift counts as executed."""
-        import warnings
-
         applied = td.get(self.key("ee_shift_applied"), None)
         for b, s in enumerate(self.states):
             if applied is not None and s.last_shift is not None:
@@ -509,8 +506,6 @@ class DDPController(KeyedModule):
         broken = torch.tensor([s.predicted is not None and not bool(torch.isfinite(s.predicted).all())
                                for s in self.states])
         for b in torch.nonzero(broken).flatten().tolist():
-            import warnings
-
             warnings.warn(f"controller: environment {b}: the world model's forecast is not finite; this cycle counts "
                           f"as OOD and acts from the real latents", RuntimeWarning, stacklevel=2)
         # D_R-I = ||O_real - O_pred||^2 over the M latest frames and the latent dims (the paper's statistic);

@@ -32,6 +32,11 @@ class Preempted(KeyboardInterrupt):
         return type(self), (self.signum,)
 
 
+def resume_hint(no_resume: bool) -> str:
+    """How a stopped command goes on: run again with ``--no-resume`` it would set the checkpoint just saved aside."""
+    return "rerun without --no-resume to resume" if no_resume else "the same command resumes"
+
+
 def _main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 

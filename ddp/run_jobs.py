@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ddp.errors import DDPError
-from ddp.preemption import Preempted
+from ddp.preemption import Preempted, resume_hint
 from ddp.recipe import parse_override
 from ddp.suite.budget import fmt_elapsed
 
@@ -173,8 +173,7 @@ def run_jobs(jobs: list[Job], *, parallel: int, threads: int, echo=print) -> dic
             signal.signal(s, handler)
     if stopped:
         left = [j.name for j in queue]
-        again = ("rerun without --no-resume to resume" if any("--no-resume" in j.argv for j in jobs)
-                 else "the same command resumes")  # --no-resume would set the checkpoints just saved aside
+        again = resume_hint(any("--no-resume" in j.argv for j in jobs))
         echo("stopped" + (f"; not started: {', '.join(left)}" if left else "")
              + (f"; failed: {', '.join(failed)} (see above)" if failed else "") + f" ({again})")
         raise KeyboardInterrupt() if stopped[0] == signal.SIGINT else Preempted(stopped[0])
