@@ -172,8 +172,7 @@ def _detect(args) -> int:
     from ddp.atomic_file import atomic_write
     from ddp.calibration_file import model_digest
     from ddp.detection import (
-        SCORE_VARIANTS, detect, format_detect, load_rollouts, plot_detect, rollouts_provenance, save_rollouts,
-        summary_json,
+        SCORE_VARIANTS, detect, format_detect, plot_detect, read_rollouts, save_rollouts, summary_json,
     )
     from ddp.errors import suggest
     from ddp.experiment import build, experiment_from_checkpoint
@@ -204,13 +203,14 @@ def _detect(args) -> int:
         if not Path(args.rollouts).is_file():
             raise DDPError(f"--rollouts: no such file: {args.rollouts}")
         try:
-            rollouts, made_with = load_rollouts(args.rollouts), rollouts_provenance(args.rollouts)
+            rollouts, made_with = read_rollouts(args.rollouts)
         except (OSError, ValueError, KeyError, zipfile.BadZipFile) as err:  # a truncated or foreign .npz
             raise DDPError(f"--rollouts: {args.rollouts} is not a ddp detect rollouts file ({err})") from None
-        if made_with is not None and made_with.get("model") != model_digest(exp.model):
+        digest = model_digest(exp.model)
+        if made_with is not None and made_with.get("model") != digest:
             raise DDPError(f"--rollouts: {args.rollouts} was rolled out with other weights (digest "
-                           f"{made_with.get('model')}; this checkpoint's {model_digest(exp.model)}): drop --rollouts "
-                           f"to roll out this one")
+                           f"{made_with.get('model')}; this checkpoint's {digest}): drop --rollouts to roll out "
+                           f"this one")
     try:
         # the recipe detector's alpha (what its evaluations calibrate to), unless --alpha says otherwise
         alpha = args.alpha if args.alpha is not None else getattr(exp.parts["controller.detector"].config, "alpha", 0.05)

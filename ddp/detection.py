@@ -392,8 +392,18 @@ def save_rollouts(rollouts: dict, path, provenance: dict | None = None) -> None:
 
 def load_rollouts(path) -> dict:
     """What :func:`save_rollouts` wrote, as ``{condition: [episode dict, ...]}``."""
+    return read_rollouts(path)[0]
+
+
+def read_rollouts(path) -> tuple[dict, dict | None]:
+    """The rollouts and their provenance (:func:`load_rollouts`, :func:`rollouts_provenance`), the file opened
+    once."""
+    import json
+
     out: dict[str, dict[int, dict]] = {}
     with np.load(path, allow_pickle=False) as data:
+        made_with = (json.loads(data[PROVENANCE_KEY].tobytes().decode()) if PROVENANCE_KEY in data.files
+                     else None)
         for key in data.files:
             if key == PROVENANCE_KEY:
                 continue
@@ -406,7 +416,7 @@ def load_rollouts(path) -> dict:
                 ep["disturbed"] = value.tolist()
             else:
                 ep[field] = value.astype(np.float64)
-    return {name: [eps[i] for i in sorted(eps)] for name, eps in out.items()}
+    return {name: [eps[i] for i in sorted(eps)] for name, eps in out.items()}, made_with
 
 
 def rollouts_provenance(path) -> dict | None:

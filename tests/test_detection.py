@@ -608,10 +608,13 @@ def test_ddp_detect_cli_writes_the_comparison(tiny_recipe, tmp_path):
     assert rep2["first_visible"] == {"ood_base": [3, 3]}
     # the header tells how the scored rollouts were made, not what this command's flags say (it said seed 0
     # and no env overrides here), and rollouts of other weights are refused (nothing checked they matched)
-    from ddp.detection import load_rollouts, rollouts_provenance, save_rollouts
+    from ddp.detection import load_rollouts, read_rollouts, rollouts_provenance, save_rollouts
 
     assert (rep2["seed"], rep2["env"]) == (rep["seed"], {"displacement_chunk": 2})
     made = rollouts_provenance(saved)
+    read, read_made = read_rollouts(saved)  # one open: the same rollouts and provenance as the two readers
+    assert read_made == made and made["seed"] == rep["seed"]
+    assert [e["seed"] for e in read["ood_base"]] == [e["seed"] for e in load_rollouts(saved)["ood_base"]]
     other = str(tmp_path / "other.npz")
     save_rollouts(load_rollouts(saved), other, provenance={**made, "model": "0" * 16})
     assert main(["detect", "--checkpoint", ckpt, "--rollouts", other, "--alpha", "0.5", "--threshold-on", "all",
