@@ -565,6 +565,41 @@ def test_foundationpose_geometric_masks_are_looked_for_where_the_surface_was_see
     np.testing.assert_allclose(off[1], 0.0, atol=1e-5)
 
 
+def _unlabelled(frame: dict) -> dict:
+    """What FrankaEnv writes for a tracking camera that renders no segmentation (a RealSense): every pixel -1."""
+    return {**frame, "segmentation": np.full_like(frame["segmentation"], -1)}
+
+
+def test_a_camera_without_segmentation_is_tracked_by_geometry_in_auto_mode(scene):
+    """In auto mode an episode whose first tracking frame has no labelled pixel isolates objects by geometry:
+    masks from the env's all -1 image read every object as not visible with a zero offset (hardware tracked
+    nothing, silently)."""
+    def observe(tracker, chunk):
+        out = tracker(observation([_unlabelled(scene.frame())], [chunk]))
+        return out["ddp", "offsets"][0].numpy(), out["ddp", "object_visible"][0].numpy()
+
+    tracker = pointcloud()  # segmentation: auto
+    off, vis = observe(tracker, 0)
+    assert vis.all() and np.all(off == 0) and tracker.masked == {0: False}
+    scene.place(0, A0 + np.array([0.0, 0.1, 0.0]))
+    off, vis = observe(tracker, 1)
+    assert vis.all() and mm(off[0] - [0.0, 0.1, 0.0]) < 4.0 and np.all(off[1] == 0)
+    # labelled frames keep the masks (the simulator's path), decided again at the next episode's first frame
+    scene.reset()
+    scene.move_plate(OFF_VIEW)
+    track(tracker, scene, 0)
+    assert tracker.masked == {0: True}
+    # FoundationPose's registration masks likewise: found by geometry near each object's expected position
+    calls = []
+    fp = FoundationPoseTracker(
+        FoundationPoseTrackerConfig(num_objects=2, mode="register", min_offset=0.0,
+                                    isolation=IsolationConfig(expected_positions=[A0.tolist(), B0.tolist()])),
+        estimator_factory=lambda k: RegistersOnTheMask(scene, k, calls))
+    scene.last_frame = scene.frame()  # the estimator reads the true labels; the tracker sees none
+    out = fp(observation([_unlabelled(scene.last_frame)], [0]))
+    assert out["ddp", "object_visible"][0].all() and calls == [("register", 0, 0), ("register", 1, 1)]
+
+
 def test_foundationpose_default_offsets_match_the_box_displacement(scene):
     tracker = FoundationPoseTracker(FoundationPoseTrackerConfig(num_objects=2),
                                     estimator_factory=lambda k: SimulatorPoses(scene, k, []))

@@ -252,11 +252,12 @@ class FoundationPoseTracker(ObjectTracker):
         self.isolator = ObjectIsolator(config.isolation, config.masks, 1, config.min_mask_pixels)
         self.estimators: dict[tuple[int, int], ObjectPoseEstimator] = {}
         self.states: dict[int, list] = {}
+        self.masked: dict[int, bool] = {}  # per env row: its episode registers from segmentation masks
         self.point = np.asarray(config.point, dtype=np.float64)
         self.reregistered = 0  # mode track: poses that disagreed with the observed points (a diagnostic)
 
     def reset(self):
-        self.states = {}
+        self.states, self.masked = {}, {}
 
     def _estimator(self, b: int, k: int) -> ObjectPoseEstimator:
         if (b, k) not in self.estimators:
@@ -362,9 +363,13 @@ class FoundationPoseTracker(ObjectTracker):
 
         results = []
         for b in range(B):
-            args = (depth[b], K[b], T[b], None if rgb is None else rgb[b], None if seg is None else seg[b],
+            seg_b = None if seg is None else seg[b]
+            new_episode = b not in self.states or (chunk is not None and chunk[b] == 0)
+            if new_episode:  # a camera without segmentation (all -1): geometric masks for the episode
+                self.masked[b] = self.isolator.episode_masks(seg_b)
+            args = (depth[b], K[b], T[b], None if rgb is None else rgb[b], seg_b if self.masked[b] else None,
                     None if ee is None else ee[b])
-            if b not in self.states or (chunk is not None and chunk[b] == 0):
+            if new_episode:
                 self.states[b] = self._reference(b, *args)  # p^exp: the episode's first (ID) frame
                 n = self.num_objects
                 visible = np.array([s is not None for s in self.states[b]])

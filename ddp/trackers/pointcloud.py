@@ -15,7 +15,9 @@ and a fit worse than ``max_fit_rmse`` means "not the object" (not visible).
 Objects are isolated
 
 - with the tracking camera's segmentation image where the env provides one
-  (simulation: ``("tracking", "segmentation")``, object index per pixel);
+  (simulation: ``("tracking", "segmentation")``, object index per pixel; an
+  episode whose first image has no labelled pixel, a camera that renders none,
+  is isolated geometrically);
 - otherwise geometrically (hardware): the table is removed (known height, or
   the dominant plane found by RANSAC; set ``table_height`` or ``workspace``
   where a floor or wall could out-vote the table), points near the gripper
@@ -88,7 +90,7 @@ class IsolationConfig:
 @dataclass
 class PointCloudTrackerConfig:
     num_objects: int | None = None  # K; None: len(isolation.expected_positions), else from the segmentation
-    segmentation: Literal["auto", "mask", "geometry"] = "auto"  # auto: the segmentation image when present
+    segmentation: Literal["auto", "mask", "geometry"] = "auto"  # auto: the segmentation image when labelled
     isolation: IsolationConfig = field(default_factory=IsolationConfig)
     refine: Literal["none", "translation", "rigid"] = "translation"  # ICP after the centroid shift
     icp_metric: Literal["point", "plane"] = "plane"  # point-to-point or point-to-plane ICP
@@ -148,6 +150,15 @@ class ObjectIsolator:
         self.stride = stride
         self.min_points = min_points
         self.table = (np.array([0.0, 0.0, 1.0]), 0.0)  # the last frame's table plane n . x + d = 0
+
+    def episode_masks(self, segmentation) -> bool:
+        """Whether an episode whose first tracking frame has this ``segmentation`` image is isolated by mask.
+        In ``auto`` mode an image without one labelled pixel is a camera that renders no segmentation (the
+        env fills it with -1: a RealSense, franky-sim without segmentation), so that episode uses geometry
+        (masks there read every object as not visible, silently)."""
+        if self.mode != "auto":
+            return self.mode == "mask"
+        return segmentation is not None and bool((np.asarray(segmentation) >= 0).any())
 
     def uses_mask(self, segmentation) -> bool:
         if self.mode == "mask" and segmentation is None:
@@ -329,9 +340,10 @@ class PointCloudTracker(ObjectTracker):
         self.config = config
         self.isolator = ObjectIsolator(config.isolation, config.segmentation, config.pixel_stride, config.min_points)
         self.refs: dict[int, _EnvRef] = {}
+        self.masked: dict[int, bool] = {}  # per env row: its episode isolates objects by segmentation mask
 
     def reset(self):
-        self.refs = {}
+        self.refs, self.masked = {}, {}
 
     # ------------------------------------------------------------------ helpers
     def _num_objects(self, segmentation) -> int:
@@ -446,7 +458,11 @@ class PointCloudTracker(ObjectTracker):
         for b in range(B):
             seg_b = None if seg is None else seg[b]
             ee_b = None if ee is None else ee[b]
-            if b not in self.refs or (chunk is not None and chunk[b] == 0):
+            new_episode = b not in self.refs or (chunk is not None and chunk[b] == 0)
+            if new_episode:
+                self.masked[b] = self.isolator.episode_masks(seg_b)
+            seg_b = seg_b if self.masked[b] else None
+            if new_episode:
                 self.refs[b] = self._reference(depth[b], K[b], T[b], seg_b, ee_b)
             results.append(self._track_env(self.refs[b], depth[b], K[b], T[b], seg_b, ee_b))
         sizes = {len(r[0]) for r in results}
