@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 from ddp.checkpoint import load_checkpoint, save_checkpoint, stored_recipe
 from ddp.data.sequence import SequenceDataset
 from ddp.distributed import env_ranks, process_group
-from ddp.errors import CheckpointError, RecipeError
+from ddp.errors import CheckpointError, DDPError, RecipeError
 from ddp.models.ddp_policy import FRAME_INDEX
 from ddp.models.ema import EMA
 from ddp.preemption import interruption, signals_deferred, stop_requests, stop_signals
@@ -169,6 +169,26 @@ class _Objective(torch.nn.Module):
         return sum(losses[k] for k in losses.keys() if k.startswith("loss_")), losses
 
 
+def check_training_episodes(episodes, keys, min_length: int, source) -> None:
+    """The demonstrations train: finite values (one NaN made its dimension's normaliser scale NaN, and every
+    loss and checkpoint after it; inf a scale of 0) and episodes long enough for a window (``min_length``
+    steps: shorter ones give none; a warning names how many)."""
+    bad = episodes.first_nonfinite(keys)
+    if bad is not None:
+        key, ep, step = bad
+        raise DDPError(f"{source}: the training data's '{key}' holds NaN or inf at episode {ep}, step {step}: fix "
+                       f"or drop that episode (data section)")
+    lengths = torch.diff(episodes.episode_ends, prepend=torch.zeros(1, dtype=torch.long))
+    short = int((lengths < min_length).sum())
+    if short == len(lengths):
+        raise DDPError(f"{source}: no demonstration episode is long enough to train on: a window needs {min_length} "
+                       f"steps (the training window less obs_steps - 1 and action_steps - 1 of edge padding), the longest "
+                       f"has {int(lengths.max())}")
+    if short:
+        warnings.warn(f"{short} of {len(lengths)} demonstration episodes are shorter than {min_length} steps and "
+                      f"give no training window", UserWarning, stacklevel=3)
+
+
 class Trainer:
     """Trains an experiment's model; ``fit()`` resumes from ``<output_dir>/last.pt`` if present."""
 
@@ -215,10 +235,10 @@ class Trainer:
         exp, cfg, model = self.exp, self.cfg, self.exp.model
         pol = exp.recipe.policy
         episodes = exp.episodes()
-        dataset = SequenceDataset(
-            episodes, model.window, pad_before=pol.obs_steps - 1, pad_after=pol.action_steps - 1,
-            keys=["point_cloud", "agent_pos", "action"],
-        )
+        keys = ["point_cloud", "agent_pos", "action"]
+        pad_before, pad_after = pol.obs_steps - 1, pol.action_steps - 1
+        check_training_episodes(episodes, keys, model.window - pad_before - pad_after, exp.source)
+        dataset = SequenceDataset(episodes, model.window, pad_before=pad_before, pad_after=pad_after, keys=keys)
         ckpt_path = self.output_dir / LAST
         if not resume:
             aside = self.ranks.on_main(lambda: set_aside_previous_run(self.output_dir, LAST), self.device,

@@ -50,6 +50,28 @@ def copy_run(trained, tmp: Path, **train) -> tuple[str, Path]:
     return write(tmp / "r.yaml", tiny(train={"output_dir": str(run), **train})), run
 
 
+def own_demos(t: Path, edit) -> dict:
+    """The runnable recipe training on its synthetic demos saved as an episodes_dir after ``edit(steps, ends)``
+    (which returns the episode ends to save)."""
+    from ddp.data.episodes import Episodes
+    from ddp.experiment import build
+
+    eps = build(write(t / "src.yaml", tiny())).episodes()
+    steps = eps.steps.clone()
+    ends = edit(steps, eps.episode_ends.clone())
+    Episodes(steps[: int(ends[-1])], ends).save(t / "eps")
+    return {**tiny(train={"output_dir": str(t / "o")}), "data": {"name": "episodes_dir", "path": str(t / "eps")}}
+
+
+def _nan_action(steps, ends):
+    steps["action"][int(ends[1]) + 3, 2] = float("nan")  # episode 2, step 3
+    return ends
+
+
+def _short_episodes(steps, ends):
+    return torch.arange(4, steps.batch_size[0] + 1, 4)  # 4 steps each; a window needs 16 - 1 - 7 = 8
+
+
 def fake_checkpoint(path: Path, payload) -> str:
     torch.save(payload, path)
     return str(path)
@@ -117,6 +139,10 @@ CASES = [
     ("train-missing-data", lambda t, tr: ["train", write(t / "r.yaml", {**tiny(train={"output_dir": str(t / "o")}),
                                                                          "data": {"name": "episodes_dir", "path": str(t / "none")}})],
      "none does not exist"),
+    ("train-nan-in-demos", lambda t, tr: ["train", write(t / "r.yaml", own_demos(t, _nan_action))],
+     "the training data's 'action' holds NaN or inf at episode 2, step 3"),
+    ("train-episodes-too-short", lambda t, tr: ["train", write(t / "r.yaml", own_demos(t, _short_episodes))],
+     "no demonstration episode is long enough to train on: a window needs 8 steps"),
     ("train-micro-batches-beyond-data", lambda t, tr: ["train", write(t / "r.yaml", tiny(
         train={"batch_size": 512, "micro_batches": 512, "output_dir": str(t / "o")}, data={"episodes": 1}))],
      "fewer than train.micro_batches (512)"),

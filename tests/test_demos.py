@@ -15,6 +15,7 @@ from torchrl.envs import EnvBase
 
 import ddp
 from ddp.data.demos import DemoGenerationError, generate_demos
+from ddp.data.episodes import Episodes
 from ddp.errors import DDPError, RecipeError
 from ddp.schema import TaskConfig, validate
 
@@ -169,6 +170,16 @@ def test_episodes_dir_round_trip(tmp_path):
                       "data": {"name": "episodes_dir", "path": str(tmp_path / "mine")}}).load()  # fmt: skip
     assert torch.equal(loaded.episode_ends, demos.episode_ends)
     assert (loaded.steps == demos.steps).all()
+
+    # numpy's float64 default: loaded as float32 (the model's layers refused float64 at the first step)
+    wide = demos.steps.clone()
+    for k in ("point_cloud", "agent_pos", "action"):
+        wide[k] = wide[k].double()
+    Episodes(wide, demos.episode_ends).save(tmp_path / "wide")
+    back = _source({"name": "w", "task": {"num_points": 32},
+                    "data": {"name": "episodes_dir", "path": str(tmp_path / "wide")}}).load()  # fmt: skip
+    assert {back.steps[k].dtype for k in ("point_cloud", "agent_pos", "action")} == {torch.float32}
+    assert torch.equal(back.steps["action"], demos.steps["action"])
 
     missing = tmp_path / "nothing_here"
     with pytest.raises(DDPError, match=f"{missing}.*does not exist"):
@@ -487,3 +498,25 @@ def test_prepare_demos_is_the_cli_entry_point(mw_cache, monkeypatch):
     assert info["generated"] is True and info["episodes"] == 1
     other = prepare_demos({"name": "s", "task": {"num_points": 32}, "data": {"name": "synthetic_reach", "episodes": 2}})
     assert other["episodes"] == 2 and other["generated"] is False
+
+
+def test_training_checks_demos_for_non_finite_values_and_short_episodes():
+    """Finite demos only (a NaN made its dimension's normaliser scale NaN and every checkpoint after it), and
+    episodes too short for a training window are counted in a warning (they were dropped silently)."""
+    from ddp.models.normalizer import MinMaxNormalizer
+    from ddp.train import check_training_episodes
+
+    def demos(lengths):
+        n = sum(lengths)
+        steps = TensorDict({"action": torch.rand(n, 4), "agent_pos": torch.rand(n, 3)}, batch_size=[n])
+        return Episodes(steps, torch.cumsum(torch.tensor(lengths), 0))
+
+    eps = demos([20, 20])
+    check_training_episodes(eps, ["action", "agent_pos"], 8, "<r>")  # nothing to say
+    eps.steps["agent_pos"][27, 1] = float("inf")
+    with pytest.raises(DDPError, match="'agent_pos' holds NaN or inf at episode 1, step 7"):
+        check_training_episodes(eps, ["action", "agent_pos"], 8, "<r>")
+    with pytest.warns(UserWarning, match="1 of 2 demonstration episodes are shorter than 8 steps"):
+        check_training_episodes(demos([4, 20]), ["action"], 8, "<r>")
+    with pytest.raises(ValueError, match="normalizer field 'action': the data hold NaN or inf"):
+        MinMaxNormalizer({"action": 4}).fit({"action": torch.tensor([[0.0, 1.0, float("nan"), 2.0]])})

@@ -45,6 +45,25 @@ class Episodes:
     def episode_starts(self) -> torch.Tensor:
         return torch.cat([torch.zeros(1, dtype=torch.long), self.episode_ends[:-1]])
 
+    def locate(self, step: int) -> tuple[int, int]:
+        """(episode, step within it) of a global step index."""
+        ep = int(torch.searchsorted(self.episode_ends, torch.tensor(step), right=True))
+        return ep, step - (0 if ep == 0 else int(self.episode_ends[ep - 1]))
+
+    def first_nonfinite(self, keys, block: int = 4096) -> tuple[str, int, int] | None:
+        """The first ``(key, episode, step within it)`` whose floating-point value holds NaN or inf, else None;
+        read ``block`` steps at a time (the data may be memory-mapped)."""
+        for key in keys:
+            x = self.steps[key]
+            if not (x.is_floating_point() or x.is_complex()):
+                continue
+            for start in range(0, self.num_steps, block):
+                part = x[start : start + block]
+                bad = ~torch.isfinite(part.reshape(part.shape[0], -1)).all(1)
+                if bool(bad.any()):
+                    return (key, *self.locate(start + int(bad.nonzero()[0, 0])))
+        return None
+
     def episode(self, i: int) -> TensorDict:
         start = 0 if i == 0 else int(self.episode_ends[i - 1])
         return self.steps[start : int(self.episode_ends[i])]

@@ -38,6 +38,8 @@ class MinMaxNormalizer(nn.Module):
             if x.shape[-1] < dim:
                 raise ValueError(f"normalizer field '{name}' has {dim} features but the data have {x.shape[-1]}")
             x = x.reshape(-1, x.shape[-1])[:, :dim]  # e.g. xyz of xyz+rgb clouds when point_dim is 3
+            if not bool(torch.isfinite(x).all()):  # NaN would make every normalised value NaN, inf a scale of 0
+                raise ValueError(f"normalizer field '{name}': the data hold NaN or inf")
             lo, hi = x.min(0).values, x.max(0).values
             rng = hi - lo
             degenerate = rng < RANGE_EPS
