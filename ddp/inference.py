@@ -66,7 +66,7 @@ from tensordict import TensorDictBase
 
 from ddp.contracts import check as check_contract
 from ddp.detectors.scores import ScoreSpec, residual_score
-from ddp.errors import RecipeError
+from ddp.errors import PluginError, RecipeError
 from ddp.keys import KeyedModule
 from ddp.rng import ACTIONS, FORECASTS, generator, mix
 from ddp.safety import DELTAS, HoldSpec, NonFiniteError, ObservationSpec, check_observation, first_nonfinite
@@ -346,6 +346,21 @@ class DDPController(KeyedModule):
                                   f"{(s.last_shift - done).tolist()} off", RuntimeWarning, stacklevel=3)
             s.last_track = s.last_shift = None
 
+    def _recover(self, followed: torch.Tensor, displaced: torch.Tensor, target):
+        """The recovery plugin's (shift [3], recovered [K] bool), checked against its contract before use: a 0-d
+        shift broadcast to every axis of the end-effector, a float mask failed deep in the controller."""
+        shift, recovered = self.recovery.recover(followed, displaced, target)
+        name = type(self.recovery).__name__
+        shift = torch.as_tensor(shift)
+        if not shift.is_floating_point() or tuple(shift.shape) != (3,):
+            raise PluginError(f"controller: recovery '{name}' returned a shift of {shift.dtype} {list(shift.shape)}; "
+                              f"the recovery contract is a float [3] end-effector shift")
+        recovered = torch.as_tensor(recovered)
+        if recovered.dtype != torch.bool or tuple(recovered.shape) != tuple(displaced.shape):
+            raise PluginError(f"controller: recovery '{name}' returned recovered of {recovered.dtype} "
+                              f"{list(recovered.shape)}; the recovery contract is a bool [K={displaced.shape[0]}] mask")
+        return shift.to(torch.float32), recovered
+
     def _subtask_ended(self, s: EnvState, obs, chunk: int) -> bool:
         trig = self._trigger(s)
         if trig is None:
@@ -522,8 +537,17 @@ class DDPController(KeyedModule):
 
         # Delta p_C per tracked object [B, K, 3]: the tracker's output sizes the object masks (K = 0 without one)
         offsets = self.tracker(td).get(self.tracker.key("offsets")) if self.tracker is not None else None
-        if offsets is not None:  # an offset the tracker could not measure is no displacement
-            offsets = torch.nan_to_num(offsets.cpu(), nan=0.0, posinf=0.0, neginf=0.0)
+        if offsets is not None:
+            if not (isinstance(offsets, torch.Tensor) and offsets.is_floating_point() and offsets.dim() == 3
+                    and offsets.shape[0] == B and offsets.shape[-1] == 3):  # a plugin's fault: before any use
+                what = (f"{offsets.dtype} {list(offsets.shape)}" if isinstance(offsets, torch.Tensor)
+                        else type(offsets).__name__)
+                raise PluginError(f"controller: tracker '{type(self.tracker).__name__}' wrote offsets of {what}; "
+                                  f"the tracker contract is a float [B={B}, K, 3] tensor (one row per object)")
+            # an offset the tracker could not measure (any component non-finite) is no displacement, whole:
+            # zeroing NaN components alone made [nan, 0.15, 0] a 15 cm shift along y
+            offsets = offsets.cpu().float()
+            offsets = torch.where(torch.isfinite(offsets).all(-1, keepdim=True), offsets, torch.zeros(()))
         num_objects = offsets.shape[-2] if offsets is not None else 0
         if offsets is not None:
             for j, sub in enumerate(self.subtasks):
@@ -547,8 +571,8 @@ class DDPController(KeyedModule):
             target = self.subtasks[min(s.subtask, len(self.subtasks) - 1)].target
             if s.ood and s.displaced is not None and self.recovery is not None:
                 followed = torch.where(s.tracked[:, None], s.followed, s.offsets)  # tracked: what was executed
-                shift, recovered = self.recovery.recover(followed, s.displaced & ~s.recovered, target)
-                if not bool(torch.isfinite(torch.as_tensor(shift, dtype=torch.float32)).all()):  # a plugin's fault
+                shift, recovered = self._recover(followed, s.displaced & ~s.recovered, target)
+                if not bool(torch.isfinite(shift).all()):  # a plugin's fault
                     raise NonFiniteError(f"controller: environment {b}, chunk {int(chunk_index[b])}: recovery "
                                          f"'{type(self.recovery).__name__}' returned a non-finite shift "
                                          f"{torch.as_tensor(shift).tolist()}; no shift is sent")

@@ -288,8 +288,10 @@ def test_gripper_closure_empty_below_lets_a_missed_grasp_go_on_and_bad_settings_
     # recovery: objects it also moves back must exist
     with pytest.raises(ValueError, match=r"also_recovers must list object indices >= 0; got \[-1\]"):
         TargetSpecificConfig(also_recovers=[-1])
+    from ddp.errors import RecipeError
+
     rec = TargetSpecificRecovery(TargetSpecificConfig(also_recovers=[5]))
-    with pytest.raises(ValueError, match=r"also_recovers: object 5 is not one of the 2 object\(s\)"):
+    with pytest.raises(RecipeError, match=r"controller.recovery.also_recovers: object 5 is not one of the 2 object\(s\)"):
         rec.recover(torch.ones(2, 3), torch.tensor([True, False]), 0)
     shift, recovered = TargetSpecificRecovery(TargetSpecificConfig(also_recovers=[1])).recover(
         torch.ones(2, 3), torch.tensor([True, False]), 0)
@@ -663,3 +665,44 @@ def test_a_recovery_plugin_returning_nan_is_one_line_before_any_shift(tiny_recip
     ctrl.recovery.recover = nan_recover
     with pytest.raises(NonFiniteError, match=r"environment 0, chunk \d+: recovery '.*' returned a non-finite shift"):
         rollout(exp, ctrl)
+
+
+def test_plugin_outputs_off_their_contract_are_one_line_and_a_partly_nan_offset_is_no_shift(tiny_recipe):
+    """Tracker offsets and recovery results are checked against their contracts before use: a 0-d recovery
+    shift broadcast to every axis of the end-effector, a float recovered mask and a tracker's [B, 3] offsets
+    failed deep in the controller. An offset with one non-finite component is no displacement at all (zeroing
+    that component alone sent the rest as a shift)."""
+    from ddp.errors import PluginError
+
+    exp = make_exp(tiny_recipe)
+
+    def with_tracker(edit):
+        ctrl = exp.make_controller()
+        forward, key = ctrl.tracker.forward, ctrl.tracker.key("offsets")
+
+        def edited(td):
+            out = forward(td)
+            out.set(key, edit(out.get(key)))
+            return out
+
+        ctrl.tracker.forward = edited
+        return ctrl
+
+    with pytest.raises(PluginError, match=r"tracker '.*' wrote offsets of torch.float32 \[1, 3\]; .*\[B=1, K, 3\]"):
+        rollout(exp, with_tracker(lambda off: off[:, 0]))
+
+    def nan_y(off):
+        off = off.clone()
+        off[..., 1] = float("nan")
+        return off
+
+    r = rollout(exp, with_tracker(nan_y))
+    assert not any(any(row) for row in shifts(r))  # never the x component of the move (DELTA) alone
+
+    for bad, match in ((lambda shift, rec: (shift.sum() * 0 - 0.2, rec), r"a shift of torch.float32 \[\]"),
+                       (lambda shift, rec: (shift, rec.float()), r"recovered of torch.float32 \[1\]; .*bool \[K=1\]")):
+        ctrl = exp.make_controller()
+        recover = ctrl.recovery.recover
+        ctrl.recovery.recover = lambda o, d, t, bad=bad, recover=recover: bad(*recover(o, d, t))
+        with pytest.raises(PluginError, match=match):
+            rollout(exp, ctrl)

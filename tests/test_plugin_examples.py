@@ -13,7 +13,7 @@ from ddp import build, registry
 from ddp.contracts import CONTRACTS
 
 EXAMPLES = {  # kind -> registered name, as in the README
-    "detector": "fixed_tau", "tracker": "scaled_truth", "recovery": "undo_all", "trigger": "after_chunks",
+    "detector": "fixed_tau", "tracker": "scaled_truth", "recovery": "undo_target_accept_rest", "trigger": "after_chunks",
     "encoder": "mean_point", "denoiser": "mlp_denoiser", "scheduler": "one_step", "dataset": "random_walk",
     "env": "drift", "protocol": "short_id",
 }
@@ -59,7 +59,7 @@ def test_a_model_made_of_the_examples_trains_and_evaluates(examples, tmp_path):
         "data": {"name": "random_walk"},
         "env": {"name": "drift"},
         "controller": {"detector": {"name": "fixed_tau", "tau": 1e-9}, "tracker": {"name": "scaled_truth"},
-                       "recovery": {"name": "undo_all"},
+                       "recovery": {"name": "undo_target_accept_rest"},
                        "subtasks": [{"target": None, "trigger": {"name": "after_chunks", "chunks": 2}}]},
         "train": {"batch_size": 8, "max_steps": 3, "warmup_steps": 1, "output_dir": str(tmp_path / "run")},
         "eval": {"episodes": 2, "protocols": ["id", "imagination_50", "short_id"], "calibration_episodes": 1},

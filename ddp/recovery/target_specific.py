@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from ddp.errors import RecipeError
 from ddp.registry import register
 
 
@@ -37,8 +38,8 @@ class TargetSpecificRecovery:
         recovered[target] = True
         for k in self.config.also_recovers:
             if k >= displaced.shape[0]:
-                raise ValueError(f"recovery.also_recovers: object {k} is not one of the {displaced.shape[0]} "
-                                 f"object(s) the tracker follows (0..{displaced.shape[0] - 1})")
+                raise RecipeError(f"object {k} is not one of the {displaced.shape[0]} object(s) the tracker "
+                                  f"follows (0..{displaced.shape[0] - 1})", key="controller.recovery.also_recovers")
             recovered[k] = True
         return -offsets[target], recovered
 
