@@ -266,6 +266,7 @@ def test_gripper_closure_settled_below_fires_on_a_grasp_wider_than_width_below()
 
 
 def test_gripper_closure_empty_below_lets_a_missed_grasp_go_on_and_bad_settings_are_refused():
+    from ddp.errors import RecipeError
     from ddp.recovery.target_specific import TargetSpecificConfig, TargetSpecificRecovery
     from ddp.triggers.gripper_closure import GripperClosureConfig, GripperClosureTrigger
 
@@ -283,13 +284,12 @@ def test_gripper_closure_empty_below_lets_a_missed_grasp_go_on_and_bad_settings_
                        (dict(min_chunks=-1), "min_chunks must be >= 0")):
         with pytest.raises(ValueError, match=match):
             GripperClosureConfig(**bad)
-    with pytest.raises(ValueError, match=r"agent_pos has 4 dims; the finger slices .* need 9"):
+    with pytest.raises(RecipeError, match=r"controller.subtasks.trigger: gripper_closure: agent_pos has 4 dims; "
+                                          r"the finger slices .* need 9"):
         paper.fired({"agent_pos": torch.zeros(2, 4)}, 8, 8)
     # recovery: objects it also moves back must exist
     with pytest.raises(ValueError, match=r"also_recovers must list object indices >= 0; got \[-1\]"):
         TargetSpecificConfig(also_recovers=[-1])
-    from ddp.errors import RecipeError
-
     rec = TargetSpecificRecovery(TargetSpecificConfig(also_recovers=[5]))
     with pytest.raises(RecipeError, match=r"controller.recovery.also_recovers: object 5 is not one of the 2 object\(s\)"):
         rec.recover(torch.ones(2, 3), torch.tensor([True, False]), 0)

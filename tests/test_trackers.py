@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDict
 
 import ddp
-from ddp.errors import DDPError
+from ddp.errors import DDPError, RecipeError
 from ddp.schema import resolve_part
 from ddp.trackers import geometry as geo
 from ddp.trackers.foundationpose import FoundationPoseTracker, FoundationPoseTrackerConfig
@@ -371,8 +371,13 @@ def test_pointcloud_tracker_config_errors():
     tracker = PointCloudTracker(PointCloudTrackerConfig(num_objects=2))
     td = observation([{"depth": np.ones((4, 4), np.float32), "intrinsics": np.eye(3), "cam_to_world": np.eye(4),
                        "rgb": np.zeros((4, 4, 3), np.uint8)}], [0], segmentation=False)
-    with pytest.raises(ValueError, match="expected_positions"):
+    with pytest.raises(RecipeError, match="controller.tracker.isolation.expected_positions: without a segmentation"):
         tracker(td)
+    # no tracking camera in the observation (MetaWorld, franka without tracking_camera): one line, not an
+    # IndexError deep in the tracker
+    with pytest.raises(RecipeError, match=r"controller.tracker: tracker 'PointCloudTracker' reads \('tracking', "
+                                          r"'depth'\), which the observation lacks"):
+        tracker(TensorDict({"agent_pos": torch.zeros(1, 2, 15)}, batch_size=[1]))
     with pytest.raises(ValueError, match=r"num_objects is 1 but isolation.expected_positions lists 2 position\(s\)"):
         PointCloudTrackerConfig(num_objects=1, isolation=IsolationConfig(expected_positions=[[0, 0, 0], [1, 0, 0]]))
     with pytest.raises(ValueError, match=r"num_objects is 3 but meshes lists 2"):

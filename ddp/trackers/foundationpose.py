@@ -44,7 +44,7 @@ from typing import Callable, Literal, Protocol
 import numpy as np
 import torch
 
-from ddp.errors import PluginError
+from ddp.errors import PluginError, RecipeError
 from ddp.registry import register
 from ddp.trackers import geometry as geo
 from ddp.trackers.base import CarriedState, ObjectTracker, tracking_in_keys
@@ -132,8 +132,8 @@ class FoundationPoseEstimator:
     @staticmethod
     def _rgb(rgb, depth):
         if rgb is None:
-            raise ValueError("foundationpose tracker needs the tracking camera's colour image (\"tracking\", \"rgb\") "
-                             "[H, W, 3] uint8; enable rgb on the env's tracking camera")
+            raise RecipeError("foundationpose needs the tracking camera's colour image (\"tracking\", \"rgb\") "
+                              "[H, W, 3] uint8; enable rgb on the env's tracking camera", key="controller.tracker")
         return np.ascontiguousarray(rgb[..., :3], dtype=np.uint8)
 
     def register(self, K, rgb, depth, mask, iterations):
@@ -306,10 +306,9 @@ class FoundationPoseTracker(ObjectTracker):
     def _reference(self, b, depth, K, T, rgb, seg, ee) -> list:
         anchors = self.config.isolation.expected_positions
         if not self.isolator.uses_mask(seg) and anchors is None:
-            raise ValueError(
-                "foundationpose tracker: without a segmentation image set isolation.expected_positions "
-                "(each object's approximate ID position, to find its registration mask)"
-            )
+            raise RecipeError("without a segmentation image set isolation.expected_positions (each object's "
+                              "approximate ID position, to find its registration mask)",
+                              key="controller.tracker.isolation.expected_positions")
         found = self._found(depth, K, T, seg, ee, anchors or [None] * self.num_objects)
         states = []
         for k, f in enumerate(found):

@@ -47,6 +47,7 @@ from typing import Literal
 
 import numpy as np
 
+from ddp.errors import RecipeError
 from ddp.registry import register
 from ddp.trackers import geometry as geo
 from ddp.trackers.base import CarriedState, ObjectTracker
@@ -162,7 +163,8 @@ class ObjectIsolator:
 
     def uses_mask(self, segmentation) -> bool:
         if self.mode == "mask" and segmentation is None:
-            raise ValueError("segmentation: 'mask' needs the tracking camera's segmentation image; none in the input")
+            raise RecipeError("'mask' needs the tracking camera's segmentation image; none in the input",
+                              key="controller.tracker.segmentation")
         return self.mode == "mask" or (self.mode == "auto" and segmentation is not None)
 
     def isolate(self, depth, K, cam_to_world, segmentation, num_objects, ee=None, placed=None, anchors=None,
@@ -354,19 +356,16 @@ class PointCloudTracker(ObjectTracker):
             return len(c.isolation.expected_positions)
         if segmentation is not None and int(np.max(segmentation)) >= 0:
             return int(np.max(segmentation)) + 1
-        raise ValueError(
-            "pointcloud tracker: cannot tell how many objects to track; set num_objects "
-            "(or isolation.expected_positions)"
-        )
+        raise RecipeError("cannot tell how many objects to track (no labelled segmentation image); set num_objects "
+                          "(or isolation.expected_positions)", key="controller.tracker")
 
     def _reference(self, depth, K, T, seg, ee) -> _EnvRef:
         K_obj = self._num_objects(seg)
         anchors = self.config.isolation.expected_positions
         if not self.isolator.uses_mask(seg) and anchors is None:
-            raise ValueError(
-                "pointcloud tracker: without a segmentation image set isolation.expected_positions "
-                "(each object's approximate ID position [x, y, z] in the base frame)"
-            )
+            raise RecipeError("without a segmentation image set isolation.expected_positions (each object's "
+                              "approximate ID position [x, y, z] in the base frame)",
+                              key="controller.tracker.isolation.expected_positions")
         found = self.isolator.isolate(depth, K, T, seg, K_obj, ee, anchors=anchors)
         objects = []
         for k, f in enumerate(found):
