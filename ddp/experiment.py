@@ -11,7 +11,7 @@ from typing import Iterable
 import torch
 
 from ddp.checkpoint import load_checkpoint
-from ddp.errors import CheckpointError, RecipeError
+from ddp.errors import CheckpointError, DDPError, RecipeError
 from ddp.recipe import dump_yaml, load_recipe
 from ddp.schema import Part, validate
 
@@ -96,6 +96,7 @@ class Experiment:
         """
         from ddp.checkpoint import describe_mismatch
         from ddp.safety import first_nonfinite
+        from ddp.train import describe_changes
 
         state = load_checkpoint(path) if state is None else state
         if not isinstance(state.get("model"), dict):
@@ -107,6 +108,12 @@ class Experiment:
         mismatch = describe_mismatch(self.model, weights)
         if mismatch:
             raise CheckpointError(f"{path}: weights do not fit this recipe's model: {mismatch}")
+        relearned = self._scheduler_changes(path, state)
+        if relearned:  # same shapes, other meaning: the weights would load and act wrongly
+            raise CheckpointError(f"{path}: the weights were trained under other scheduler settings than this "
+                                  f"recipe's ({describe_changes(relearned)}): they predict another quantity or "
+                                  f"noise schedule; evaluate with the trained settings (sampling options such as "
+                                  f"num_inference_steps may differ)")
         bad = first_nonfinite(weights.items())
         if bad is not None:  # checked before loading: the model keeps its weights
             raise CheckpointError(f"{path}: the {'EMA ' if weights is not state['model'] else ''}weights hold NaN "
@@ -119,6 +126,37 @@ class Experiment:
         self.checkpoint_path = Path(path)  # a detector calibration is saved beside it
         self.checkpoint_weights = "raw" if weights is state["model"] else "ema"  # what an evaluation reports
         return self
+
+    def _scheduler_changes(self, path, state: dict) -> dict:
+        """Scheduler options that define what the checkpoint's networks learned (prediction type, noise schedule,
+        flow times) and differ between its stored recipe and this one; each scheduler config declares the
+        options free at inference (``free_at_inference``). None checked for a checkpoint without a recipe."""
+        from ddp import registry
+        from ddp.checkpoint import stored_recipe
+        from ddp.recipe import recipe_changes
+
+        if not isinstance(state.get("recipe"), str):
+            return {}
+        stored = stored_recipe(path, state)
+        out = {}
+        for section in ("policy.scheduler", "world_model.scheduler"):
+            part = self.parts.get(section)
+            if part is None:
+                continue
+            head = section.split(".")[0]
+            before = stored.get(head).get("scheduler") if isinstance(stored.get(head), dict) else None
+            if not isinstance(before, dict):
+                continue
+            free = set(getattr(type(part.config), "free_at_inference", ()))
+            try:  # the trained scheduler's own free options (DDPM trained, DDIM sampled: DP3's pairing)
+                free |= set(getattr(registry.get("scheduler", before.get("name")).config_cls, "free_at_inference", ()))
+            except DDPError:
+                pass
+            now = (self.resolved.get(head) or {}).get("scheduler") or {}
+            for key, change in recipe_changes(before, now).items():
+                if key != "name" and key not in free:
+                    out[f"{section}.{key}"] = change
+        return out
 
     def _check_simulator_truth(self, env_config, module, key: str) -> None:
         """A part that reads the simulator's truth (a ``("privileged", ...)`` key: object displacements, the

@@ -173,6 +173,12 @@ CASES = [
     ("checkpoint-is-directory", lambda t, tr: (lambda r, run: ((run / "last.pt").unlink(), (run / "last.pt").mkdir(), ["train", r])[2])(*copy_run(tr, t)),
      "last.pt: is a directory, not a checkpoint file"),
     # -------- evaluation
+    ("eval-other-prediction-type", lambda t, tr: ["eval", tr["recipe"], "--checkpoint", str(tr["ckpt"]), "--set",
+                                                 "policy.scheduler.prediction_type=epsilon", "--output-dir", str(t / "e")],
+     "trained under other scheduler settings than this recipe's (policy.scheduler.prediction_type: 'sample' -> 'epsilon')"),
+    ("eval-other-noise-schedule", lambda t, tr: ["eval", "--checkpoint", str(tr["ckpt"]), "--set",
+                                                "world_model.scheduler.beta_schedule=linear", "--output-dir", str(t / "e")],
+     "world_model.scheduler.beta_schedule: 'squaredcos_cap_v2' -> 'linear'"),
     ("eval-episodes-negative", lambda t, tr: ["eval", tr["recipe"], "--checkpoint", str(tr["ckpt"]), "--episodes", "-1",
                                               "--output-dir", str(t)], "--episodes: must be a whole number >= 1; got -1"),
     ("eval-episodes-zero", lambda t, tr: ["eval", tr["recipe"], "--checkpoint", str(tr["ckpt"]), "--episodes", "0",

@@ -49,6 +49,7 @@ Choices (all but the last follow FlowPolicy's public code):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 
@@ -76,6 +77,10 @@ class ConsistencyFlowConfig:
     time_scale: float = 99.0
     #: evaluate v_r without gradient (FlowPolicy: False)
     stop_grad_r: bool = False
+
+    #: options a trained model may be sampled with other values of (the loss's alpha and stop_grad_r shaped
+    #: training only; the times and segments define what the network learned)
+    free_at_inference: ClassVar[frozenset[str]] = frozenset({"num_inference_steps", "alpha", "stop_grad_r"})
 
     def __post_init__(self):
         if not 0.0 <= self.eps < 1.0:

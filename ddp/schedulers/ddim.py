@@ -11,7 +11,7 @@ timestep, where diffusers goes to ``k - K // n`` (beside the next one; see ``_pr
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 import torch
 
@@ -37,6 +37,11 @@ class DDIMConfig:
     eta: float = 0.0
     num_inference_steps: int = 10
     prediction_type: Literal["epsilon", "sample"] = "epsilon"
+
+    #: options a trained model may be sampled with other values of (the rest define what the network learned)
+    free_at_inference: ClassVar[frozenset[str]] = frozenset({
+        "num_inference_steps", "eta", "timestep_spacing", "clip_sample", "clip_sample_range", "set_alpha_to_one",
+        "steps_offset"})
 
     def __post_init__(self):
         check_diffusion_fields(self)

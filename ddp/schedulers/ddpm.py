@@ -7,7 +7,7 @@ Numerically equal to ``diffusers.DDPMScheduler`` with the same options
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 import torch
 
@@ -29,6 +29,10 @@ class DDPMConfig:
     prediction_type: Literal["epsilon", "sample"] = "epsilon"
     #: reverse steps used by ``sample``; ``None`` means all ``num_train_timesteps``
     num_inference_steps: int | None = None
+
+    #: options a trained model may be sampled with other values of (the rest define what the network learned)
+    free_at_inference: ClassVar[frozenset[str]] = frozenset({
+        "num_inference_steps", "variance_type", "clip_sample", "clip_sample_range"})
 
     def __post_init__(self):
         check_diffusion_fields(self)
