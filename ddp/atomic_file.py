@@ -72,6 +72,18 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def _fsync_tree(root: Path) -> None:
+    """Every file and directory under ``root`` (``root`` included) flushed to disk."""
+    for folder, _, files in os.walk(root):
+        for name in files:
+            fd = os.open(os.path.join(folder, name), os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        _fsync_dir(Path(folder))
+
+
 def atomic_directory(path: str | os.PathLike, write: Callable[[Path], None]) -> Path:
     """``write(tmp)`` fills a new directory beside ``path``, which then replaces ``path``: a reader sees the
     earlier directory or the new one, whole; an error (or a crash) before the move leaves the earlier one.
@@ -82,6 +94,8 @@ def atomic_directory(path: str | os.PathLike, write: Callable[[Path], None]) -> 
     try:
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it private; a directory gets what mkdir would give
         write(tmp)
+        _fsync_tree(tmp)  # on disk before the rename: a power loss could otherwise leave the new name on files
+        # that were sized but never filled (memory-mapped leaves read as zeros of the right size)
         old = None
         if path.exists():  # moved aside, not deleted, until the new directory is in place
             old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")

@@ -157,3 +157,27 @@ def test_saving_episodes_replaces_only_an_episode_directory_and_follows_links(tm
     empty = tmp_path / "empty"
     empty.mkdir()
     assert Episodes.load(eps.save(empty)).num_episodes == eps.num_episodes
+
+
+def test_a_missing_episode_file_is_one_line_and_saves_reach_the_disk(tmp_path, monkeypatch):
+    """An episode directory missing one leaf's file is refused (tensordict loaded it without that key: a
+    KeyError at training); a save flushes every file it wrote before its rename (a power loss could leave the
+    new name on files sized but never filled)."""
+    import os
+
+    import pytest
+
+    import ddp.atomic_file
+    from ddp.errors import DDPError
+
+    flushed = []
+    real_fsync = os.fsync
+    monkeypatch.setattr(ddp.atomic_file.os, "fsync",
+                        lambda fd: (flushed.append(os.readlink(f"/proc/self/fd/{fd}")), real_fsync(fd))[1])
+    d = _episodes().save(tmp_path / "eps")
+    leaves = [str(p) for p in (tmp_path / "eps").rglob("*.memmap")]
+    assert leaves and all(any(f.endswith(os.path.relpath(p, tmp_path / "eps")) and ".eps.tmp-" in f
+                              for f in flushed) for p in leaves)
+    next((d / "steps").rglob("*.memmap")).unlink()
+    with pytest.raises(DDPError, match=r"\.memmap: missing \(the episode data's"):
+        Episodes.load(d)

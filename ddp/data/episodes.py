@@ -148,11 +148,16 @@ def _check_leaf_files(steps: Path) -> None:
         if isinstance(leaf, dict) and "shape" in leaf and isinstance(leaf.get("dtype"), str):
             file = steps / f"{key}.memmap"
             dtype = getattr(torch, leaf["dtype"].removeprefix("torch."), None)
-            if not file.is_file() or not isinstance(dtype, torch.dtype):
+            if not isinstance(dtype, torch.dtype):
                 continue  # not a plain memory-mapped leaf: the loader decides
             numel = 1
             for n in leaf["shape"]:
                 numel *= int(n)
+            if not file.is_file():
+                if numel:  # tensordict skips a leaf without its file: the episodes would load without that key
+                    raise DDPError(f"{file}: missing (the episode data's '{key}', {list(leaf['shape'])}): a damaged "
+                                   f"or partly copied episode directory")
+                continue
             need, size = numel * dtype.itemsize, file.stat().st_size
             if size != need:
                 raise DDPError(f"{file}: holds {size} bytes where its shape {list(leaf['shape'])} "
