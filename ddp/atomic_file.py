@@ -76,9 +76,14 @@ def _fsync_tree(root: Path) -> None:
     """Every file and directory under ``root`` (``root`` included) flushed to disk."""
     for folder, _, files in os.walk(root):
         for name in files:
-            fd = os.open(os.path.join(folder, name), os.O_RDONLY)
+            try:
+                fd = os.open(os.path.join(folder, name), os.O_RDONLY)
+            except OSError:
+                continue
             try:
                 os.fsync(fd)
+            except OSError:  # a filesystem refusing fsync (some FUSE mounts): the write stands as it is
+                pass
             finally:
                 os.close(fd)
         _fsync_dir(Path(folder))

@@ -111,8 +111,8 @@ class Experiment:
         relearned = self._scheduler_changes(path, state)
         if relearned:  # same shapes, other meaning: the weights would load and act wrongly
             raise CheckpointError(f"{path}: the weights were trained under other scheduler settings than this "
-                                  f"recipe's ({describe_changes(relearned)}): they predict another quantity or "
-                                  f"noise schedule; evaluate with the trained settings (sampling options such as "
+                                  f"recipe's ({describe_changes(relearned)}), which define what the network "
+                                  f"learned to predict; keep the trained values (sampling options such as "
                                   f"num_inference_steps may differ)")
         bad = first_nonfinite(weights.items())
         if bad is not None:  # checked before loading: the model keeps its weights
@@ -137,11 +137,14 @@ class Experiment:
 
         if not isinstance(state.get("recipe"), str):
             return {}
-        stored = stored_recipe(path, state)
+        try:
+            stored = stored_recipe(path, state)
+        except CheckpointError:  # an unreadable stored recipe: nothing to compare (the weights' shapes still are)
+            return {}
         out = {}
         for section in ("policy.scheduler", "world_model.scheduler"):
             part = self.parts.get(section)
-            if part is None:
+            if part is None or (section.startswith("world_model") and not self.recipe.world_model.enabled):
                 continue
             head = section.split(".")[0]
             before = stored.get(head).get("scheduler") if isinstance(stored.get(head), dict) else None

@@ -284,8 +284,8 @@ def test_gripper_closure_empty_below_lets_a_missed_grasp_go_on_and_bad_settings_
                        (dict(min_chunks=-1), "min_chunks must be >= 0")):
         with pytest.raises(ValueError, match=match):
             GripperClosureConfig(**bad)
-    with pytest.raises(RecipeError, match=r"controller.subtasks.trigger: gripper_closure: agent_pos has 4 dims; "
-                                          r"the finger slices .* need 9"):
+    with pytest.raises(RecipeError, match=r"controller.subtasks\[\*\].trigger: agent_pos has 4 dims; the "
+                                          r"gripper_closure finger slices .* need 9"):
         paper.fired({"agent_pos": torch.zeros(2, 4)}, 8, 8)
     # recovery: objects it also moves back must exist
     with pytest.raises(ValueError, match=r"also_recovers must list object indices >= 0; got \[-1\]"):

@@ -171,15 +171,22 @@ def test_episodes_dir_round_trip(tmp_path):
     assert torch.equal(loaded.episode_ends, demos.episode_ends)
     assert (loaded.steps == demos.steps).all()
 
-    # numpy's float64 default: loaded as float32 (the model's layers refused float64 at the first step)
+    # numpy's float64 default: training windows come out float32 (the model's layers refused float64 at the
+    # first step), the data stay memory-mapped as stored
+    from ddp.data.sequence import SequenceDataset
+
     wide = demos.steps.clone()
     for k in ("point_cloud", "agent_pos", "action"):
         wide[k] = wide[k].double()
     Episodes(wide, demos.episode_ends).save(tmp_path / "wide")
     back = _source({"name": "w", "task": {"num_points": 32},
                     "data": {"name": "episodes_dir", "path": str(tmp_path / "wide")}}).load()  # fmt: skip
-    assert {back.steps[k].dtype for k in ("point_cloud", "agent_pos", "action")} == {torch.float32}
-    assert torch.equal(back.steps["action"], demos.steps["action"])
+    assert back.steps["action"].dtype == torch.float64
+    windows = SequenceDataset(back, 4, keys=["point_cloud", "agent_pos", "action"])
+    batch = windows.batch(torch.tensor([0, 2]))
+    assert {batch[k].dtype for k in ("point_cloud", "agent_pos", "action")} == {torch.float32}
+    assert windows[1]["action"].dtype == torch.float32
+    assert torch.equal(batch["action"], SequenceDataset(demos, 4).batch(torch.tensor([0, 2]))["action"])
 
     missing = tmp_path / "nothing_here"
     with pytest.raises(DDPError, match=f"{missing}.*does not exist"):

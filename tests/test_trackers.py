@@ -594,6 +594,12 @@ def test_a_camera_without_segmentation_is_tracked_by_geometry_in_auto_mode(scene
     scene.move_plate(OFF_VIEW)
     track(tracker, scene, 0)
     assert tracker.masked == {0: True}
+    # without expected positions (nowhere to look by geometry; in simulation every object may be hidden at the
+    # first frame) the masks stay, with a warning: not visible, not an error
+    blind = PointCloudTracker(PointCloudTrackerConfig(num_objects=2))
+    with pytest.warns(RuntimeWarning, match="labels no pixel"):
+        out = blind(observation([_unlabelled(scene.frame())], [0]))
+    assert blind.masked == {0: True} and not out["ddp", "object_visible"][0].any()
     # FoundationPose's registration masks likewise: found by geometry near each object's expected position
     calls = []
     fp = FoundationPoseTracker(
@@ -603,6 +609,12 @@ def test_a_camera_without_segmentation_is_tracked_by_geometry_in_auto_mode(scene
     scene.last_frame = scene.frame()  # the estimator reads the true labels; the tracker sees none
     out = fp(observation([_unlabelled(scene.last_frame)], [0]))
     assert out["ddp", "object_visible"][0].all() and calls == [("register", 0, 0), ("register", 1, 1)]
+    # the colour image stays optional for the trackers (a depth-only estimator); the camera's depth is not
+    td = observation([scene.last_frame], [0])
+    del td["tracking", "rgb"]
+    depth_only = FoundationPoseTracker(FoundationPoseTrackerConfig(num_objects=2, mode="register"),
+                                       estimator_factory=lambda k: SimulatorPoses(scene, k, []))
+    assert depth_only(td)["ddp", "object_visible"][0].all()
 
 
 def test_foundationpose_default_offsets_match_the_box_displacement(scene):

@@ -312,3 +312,46 @@ def test_bf16_autocast_option_trains(tiny_recipe, tmp_path):
     res = build(tiny_recipe).train(output_dir=tmp_path, progress=False)
     assert res.steps > 0 and math.isfinite(res.loss)
     assert not (tmp_path / "logs").exists()
+
+
+def test_scheduler_check_reads_only_what_the_weights_learned(tiny_recipe, tmp_path, monkeypatch):
+    """The trained-settings check (a checkpoint under another prediction_type loaded and acted wrongly) skips a
+    disabled world model's scheduler (DP3, FlowPolicy), a flow's training-only options, and a stored recipe it
+    cannot read; atomic directories survive a filesystem that refuses fsync."""
+    import copy
+    import errno
+    import os
+
+    import ddp.atomic_file
+    from ddp import build
+    from ddp.recipe import dump_yaml
+
+    def changes(recipe, edit):
+        exp = build(recipe)
+        stored = copy.deepcopy(exp.resolved)
+        edit(stored)
+        return exp._scheduler_changes("ck.pt", {"recipe": dump_yaml(stored)})
+
+    def prediction(section, value):
+        return lambda r: r[section]["scheduler"].update(prediction_type=value)
+
+    assert list(changes(copy.deepcopy(tiny_recipe), prediction("policy", "epsilon"))) == [
+        "policy.scheduler.prediction_type"]
+    assert list(changes(copy.deepcopy(tiny_recipe), prediction("world_model", "epsilon"))) == [
+        "world_model.scheduler.prediction_type"]
+    no_wm = copy.deepcopy(tiny_recipe)
+    no_wm["world_model"]["enabled"] = False
+    assert changes(no_wm, prediction("world_model", "epsilon")) == {}  # no world-model weights to misread
+    flow = copy.deepcopy(tiny_recipe)
+    flow["policy"]["scheduler"] = {"name": "consistency_flow"}
+    assert changes(flow, lambda r: r["policy"]["scheduler"].update(num_segments=3, delta=0.02)) == {}
+    assert list(changes(flow, lambda r: r["policy"]["scheduler"].update(time_scale=50.0))) == [
+        "policy.scheduler.time_scale"]
+    assert build(tiny_recipe)._scheduler_changes("ck.pt", {"recipe": "a: [unclosed"}) == {}
+
+    def refusing(fd):
+        raise OSError(errno.EINVAL, "fsync not supported")
+
+    monkeypatch.setattr(ddp.atomic_file.os, "fsync", refusing)
+    written = ddp.atomic_file.atomic_directory(tmp_path / "d", lambda tmp: (tmp / "f").write_text("x"))
+    assert (written / "f").read_text() == "x" and os.listdir(tmp_path) == ["d"]

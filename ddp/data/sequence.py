@@ -48,8 +48,16 @@ class SequenceDataset(torch.utils.data.Dataset):
         return self.indices.shape[0]
 
     def __getitem__(self, i: int) -> TensorDict:
-        return self.steps[self.indices[i]]
+        return _single(self.steps[self.indices[i]])
 
     def batch(self, idx: torch.Tensor) -> TensorDict:
         flat = self.indices[idx].reshape(-1)
-        return self.steps[flat].reshape(idx.shape[0], self.indices.shape[1])
+        return _single(self.steps[flat].reshape(idx.shape[0], self.indices.shape[1]))
+
+
+def _single(windows: TensorDict) -> TensorDict:
+    """float64 leaves (numpy's default, e.g. in an episodes_dir) as float32, per window: the data stay
+    memory-mapped, and the model's float32 layers refused float64 at the first step."""
+    if not any(x.dtype == torch.float64 for x in windows.values(True, True)):
+        return windows
+    return windows.apply(lambda x: x.float() if x.dtype == torch.float64 else x)

@@ -78,9 +78,10 @@ class ConsistencyFlowConfig:
     #: evaluate v_r without gradient (FlowPolicy: False)
     stop_grad_r: bool = False
 
-    #: options a trained model may be sampled with other values of (the loss's alpha and stop_grad_r shaped
-    #: training only; the times and segments define what the network learned)
-    free_at_inference: ClassVar[frozenset[str]] = frozenset({"num_inference_steps", "alpha", "stop_grad_r"})
+    #: options a trained model may be sampled with other values of (the loss's segments, pairing and weights
+    #: shaped training only; eps and time_scale define the times the network saw)
+    free_at_inference: ClassVar[frozenset[str]] = frozenset({
+        "num_inference_steps", "alpha", "stop_grad_r", "delta", "num_segments", "boundary"})
 
     def __post_init__(self):
         if not 0.0 <= self.eps < 1.0:

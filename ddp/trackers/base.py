@@ -155,12 +155,12 @@ class ObjectTracker(KeyedModule):
         if unbatched:
             td = td.unsqueeze(0)
         B = td.batch_size[0]
-        for name in ("depth", "intrinsics", "cam_to_world", *images):
+        for name in ("depth", "intrinsics", "cam_to_world"):  # further images stay optional (the tracker decides)
             if td.get(self.key(name), None) is None:  # read as None: an IndexError deep in the tracker
                 raise RecipeError(f"tracker '{type(self).__name__}' reads {self.key(name)}, which the observation "
                                   f"lacks: it needs the env's tracking camera (on franka: env.tracking_camera: "
-                                  f"true{', env.tracking_rgb: true' if images else ''}; MetaWorld, Adroit and the "
-                                  f"synthetic env have none: use the oracle tracker there)", key="controller.tracker")
+                                  f"true; MetaWorld, Adroit and the synthetic env have none: use the oracle tracker "
+                                  f"there)", key="controller.tracker")
         optional = {}
         for name in (*images, "segmentation"):
             value = td.get(self.key(name), None)

@@ -42,6 +42,7 @@ a displacement).
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -154,12 +155,23 @@ class ObjectIsolator:
 
     def episode_masks(self, segmentation) -> bool:
         """Whether an episode whose first tracking frame has this ``segmentation`` image is isolated by mask.
-        In ``auto`` mode an image without one labelled pixel is a camera that renders no segmentation (the
-        env fills it with -1: a RealSense, franky-sim without segmentation), so that episode uses geometry
-        (masks there read every object as not visible, silently)."""
+        In ``auto`` mode an image without one labelled pixel is taken for a camera that renders no segmentation
+        (the env fills it with -1: a RealSense, franky-sim without segmentation) where
+        ``isolation.expected_positions`` says where to look: that episode uses geometry (masks there read every
+        object as not visible, silently). Without those positions it keeps the masks (in simulation every
+        object may be hidden at the first frame), with a warning."""
         if self.mode != "auto":
             return self.mode == "mask"
-        return segmentation is not None and bool((np.asarray(segmentation) >= 0).any())
+        if segmentation is None:
+            return False
+        if bool((np.asarray(segmentation) >= 0).any()):
+            return True
+        if self.cfg.expected_positions is not None:
+            return False
+        warnings.warn("tracker: the first tracking frame's segmentation image labels no pixel (a camera that renders "
+                      "none, or every object hidden): no object is found by mask; set isolation.expected_positions "
+                      "to look for them by geometry", RuntimeWarning, stacklevel=3)
+        return True
 
     def uses_mask(self, segmentation) -> bool:
         if self.mode == "mask" and segmentation is None:

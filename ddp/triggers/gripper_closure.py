@@ -62,9 +62,9 @@ class GripperClosureTrigger:
     def width(self, agent_pos) -> float:
         c = self.config
         if agent_pos.shape[-1] < max(c.left[1], c.right[1]):
-            raise RecipeError(f"gripper_closure: agent_pos has {agent_pos.shape[-1]} dims; the finger slices left "
+            raise RecipeError(f"agent_pos has {agent_pos.shape[-1]} dims; the gripper_closure finger slices left "
                               f"{list(c.left)} / right {list(c.right)} need {max(c.left[1], c.right[1])}",
-                              key="controller.subtasks.trigger")
+                              key="controller.subtasks[*].trigger")
         return float((agent_pos[..., c.left[0] : c.left[1]] - agent_pos[..., c.right[0] : c.right[1]]).norm(dim=-1))
 
     def fired(self, obs, chunk_index: int, subtask_chunks: int, state: dict | None = None) -> bool:

@@ -10,8 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
 from ddp.data.episodes import Episodes
 from ddp.errors import DDPError
 from ddp.registry import register
@@ -57,12 +55,6 @@ class EpisodesDir:
                 f"{path}: episodes lack {', '.join(missing)} (have {', '.join(sorted(episodes.steps.keys()))})"
             )
         check_task(episodes, self.task, str(path))
-        wide = [k for k in REQUIRED_KEYS if episodes.steps[k].dtype in (torch.float64, torch.float16, torch.bfloat16)]
-        if wide:  # numpy's float64 default: the model's float32 layers refused it at the first step (a traceback)
-            steps = episodes.steps.clone(recurse=False)
-            for k in wide:
-                steps[k] = episodes.steps[k].to(torch.float32)
-            episodes = Episodes(steps, episodes.episode_ends)
         return episodes
 
 
