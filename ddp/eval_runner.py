@@ -305,7 +305,9 @@ def _summarise(traj, env_index: int, seed: int, latents: bool = False) -> dict:
     out = {
         "seed": seed,
         "env": env_index,
-        "success": bool(success.any()),
+        # the episode's success so far after its last chunk (ChunkedEnv keeps it, and revokes it where the task
+        # failed for good; equal to any chunk's success otherwise)
+        "success": bool(success[-1]),
         "chunks": int(traj.batch_size[0]),
         "first_success_chunk": int(success.nonzero()[0]) if bool(success.any()) else None,
     }

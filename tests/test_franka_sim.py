@@ -330,6 +330,12 @@ def test_press_fails_when_under_or_over_pressed(envs):
     assert float(td["privileged", "task_info", "over_pressed"]) == 1.0  # what an evaluation reports per episode
     assert float(td["privileged", "task_info", "max_depth"]) == pytest.approx(env.task_state["max_depth"])
     assert not press_to(0.052)  # a correct press afterwards does not undo the over-press
+    assert bool(td["failed"])  # the env's flag: the episode failed for good
+    # a good press, then an over-press: the success is revoked (it counted: success was read at any step)
+    td = env.reset(seed=0)
+    assert not bool(td["failed"])
+    assert press_to(0.052) and not bool(td["failed"])
+    assert not press_to(0.0) and bool(td["failed"])
 
 
 @pytest.mark.parametrize("task", ["press", "stack"])

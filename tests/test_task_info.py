@@ -42,3 +42,28 @@ def test_protocol_and_suite_summaries_average_them_leaving_out_nan():
     assert _summary(result)["task_info"] == mean  # what results/suites/<suite>/<run>.json keeps
     assert "task_info" not in protocol_result([{"success": True}], seconds=1.0, thresholds={})
     assert task_info_mean([{"success": True, "task_info": {"x": math.nan}}]) == {}
+
+
+def test_a_task_failed_for_good_revokes_an_earlier_success(tiny_recipe):
+    """A press past its depth after a good press: the env's "failed" flag revokes the episode's success in
+    ChunkedEnv, for the rest of the episode, and an evaluation reads the episode's success after its last
+    chunk (any chunk's success counted the good press)."""
+    from ddp import build
+    from ddp.evaluate import make_chunked_env
+
+    env = make_chunked_env(build(tiny_recipe), seed=0)
+    env.reset()
+
+    def step(**flags):
+        env._after_inner_step(TensorDict({k: torch.tensor([v]) for k, v in flags.items()}, batch_size=[]))
+        return env._success
+
+    assert step(success=True) and step(success=False)  # success so far
+    assert not step(success=True, failed=True) and not step(success=True)  # revoked, for good
+    env.reset()
+    assert step(success=True)  # a new episode starts clean
+    revoked = TensorDict({"next": TensorDict({"success": torch.tensor([False, True, False]).reshape(3, 1)}, [3])},
+                         [3])
+    out = _summarise(revoked, env_index=0, seed=1)
+    assert out["success"] is False and out["first_success_chunk"] == 1
+    env.close()

@@ -132,6 +132,7 @@ class ChunkedEnv(EnvBase):
         self.done_spec = base.full_done_spec.clone()
         self._chunk = 0
         self._success = False
+        self._failed = False
         self._label: ChunkLabel | None = None
 
     def _set_seed(self, seed: int | None) -> None:
@@ -153,7 +154,7 @@ class ChunkedEnv(EnvBase):
         # reset(seed=s) plays episode s, as the base env's does (it was dropped: another episode, mislabelled)
         first = self._chunks.reset() if seed is None else self._chunks.reset(seed=seed)
         self._chunk = 0
-        self._success = False
+        self._success = self._failed = False
         if self.recorder is not None:
             self.recorder.start_episode(int(self.base.episode_seed) if self._tells_seed else None)
             self._record(None)
@@ -163,8 +164,11 @@ class ChunkedEnv(EnvBase):
         return out
 
     def _after_inner_step(self, step: TensorDictBase) -> None:
-        """After each action of the chunk: the episode's success so far, the video frame."""
-        self._success = self._success or bool(step.get("success", torch.zeros(1, dtype=torch.bool)).any())
+        """After each action of the chunk: the episode's success so far, the video frame. An env's optional
+        ``"failed"`` flag (the task failed for good: a press past its depth) revokes an earlier success."""
+        self._failed = self._failed or bool(step.get("failed", torch.zeros(1, dtype=torch.bool)).any())
+        success = self._success or bool(step.get("success", torch.zeros(1, dtype=torch.bool)).any())
+        self._success = success and not self._failed
         if self._label is not None:
             self._label.success = self._success
             self._record(self._label)

@@ -27,7 +27,9 @@ unchanged:
   end-effector rotation matrix). Computed from ``backend.ee_pose()`` and
   ``backend.gripper_width()`` for every backend.
 * ``"success"`` (bool ``[1]``): the task's success definition at this step
-  (simulation; always False on hardware).
+  (simulation; always False on hardware). ``"failed"`` (bool ``[1]``): the
+  task failed for good this episode (press: over-pressed), which revokes an
+  earlier success (``ChunkedEnv``).
 * ``("privileged", ...)``: ``"object_pos"`` ``[K, 3]`` and ``"object_quat"``
   ``[K, 4]`` (objects in ``task.object_names`` order; zeros where the backend
   does not know them), ``"displacement"`` ``[K, 3]`` (OOD displacement
@@ -355,6 +357,7 @@ class FrankaEnv(PointCloudEnv):
         self._tracked = np.zeros((len(self._plan), 3))
         self._ee_offset = np.zeros(3)
         self._task_state: dict = {}
+        self._failed = False  # the task failed for good this episode (press: over-pressed)
         self._halted = False  # a robot's reflex stopped a motion: no more motion commands this episode
         self._build_specs()
 
@@ -377,8 +380,9 @@ class FrankaEnv(PointCloudEnv):
 
     def _extra_spec(self) -> dict:
         cfg, dev = self.config, self.device
+        failed = {"failed": self._flag_spec()}  # the task failed for good (press: over-pressed)
         if not cfg.tracking_camera:
-            return {}
+            return failed
         h, w = cfg.tracking_image_height, cfg.tracking_image_width
         vec = self._vec_spec
         tracking = dict(
@@ -387,7 +391,7 @@ class FrankaEnv(PointCloudEnv):
         )  # fmt: skip
         if cfg.tracking_rgb:
             tracking["rgb"] = Bounded(0, 255, shape=(h, w, 3), dtype=torch.uint8, device=dev)
-        return {"tracking": Composite(tracking, device=dev)}
+        return {**failed, "tracking": Composite(tracking, device=dev)}
 
     def _action_bounds(self):
         low = torch.as_tensor(self.control.action_low, dtype=torch.float32)
@@ -404,6 +408,7 @@ class FrankaEnv(PointCloudEnv):
         self._tracked[:] = 0.0
         self._ee_offset[:] = 0.0
         self._task_state = self._task.new_state()
+        self._failed = False
         self._halted = False
 
     def _before_action(self, t: int) -> None:
@@ -434,6 +439,7 @@ class FrankaEnv(PointCloudEnv):
         if self._is_sim:
             self._task.update(self.backend, self._task_state)
             success = bool(self._task.success(self.backend, self._task_state))
+            self._failed = self._failed or bool(self._task.failed(self.backend, self._task_state))
         return float(success), success
 
     def _agent_pos(self) -> np.ndarray:
@@ -484,9 +490,11 @@ class FrankaEnv(PointCloudEnv):
             self._tracking["rgb"] = np.asarray(rgb, dtype=np.uint8)
 
     def _extra_output(self) -> dict:
+        failed = {"failed": self._flag(self._failed)}
         if not self.config.tracking_camera:
-            return {}
-        return {"tracking": {key: torch.as_tensor(v.copy(), device=self.device) for key, v in self._tracking.items()}}
+            return failed
+        return {**failed,
+                "tracking": {key: torch.as_tensor(v.copy(), device=self.device) for key, v in self._tracking.items()}}
 
     def _close_sim(self) -> None:
         """Release the backend (simulator and renderers, or the robot connection) unless the caller owns it."""

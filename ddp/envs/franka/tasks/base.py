@@ -180,6 +180,11 @@ class FrankaTask:
         """The paper's success definition, checked on the simulator state."""
         raise NotImplementedError
 
+    def failed(self, sim, state: dict) -> bool:
+        """Whether the episode has failed for good (press: an over-press), so that an earlier success no longer
+        counts (the env's ``"failed"`` key; ``ChunkedEnv`` revokes the episode's success)."""
+        return False
+
     def info(self, sim, state: dict) -> dict[str, float]:
         """Diagnostics for reports (e.g. balls in the cup, press depth): one float per name in ``info_keys``."""
         return {}
