@@ -30,6 +30,11 @@ def test_config_validation_names_field_and_value():
         FrankaEnvConfig(backend="real", displacement=True)
     with pytest.raises(ValueError, match=r"displacement_chunks needs one entry per scheduled .*\(2\); got 1"):
         FrankaEnvConfig(task="stack", displacement=True, displacement_chunks=[3])
+    # a move no chunk acts on (the protocol would measure an undisturbed episode)
+    with pytest.raises(ValueError, match=r"displacement of button at step 96 is first observed at step 104 .* "
+                                         r"max_episode_steps 96 no chunk acts on it"):
+        FrankaEnvConfig(task="press", displacement=True, displacement_chunks=[12])
+    FrankaEnvConfig(task="press", displacement=True, displacement_chunks=[10])  # observed at 88: acted on
     with pytest.raises(ValueError, match=r"obs_history \(3\) must be <= obs_every \(2\)"):
         FrankaEnvConfig(obs_every=2, obs_history=3)
     with pytest.raises(ValueError, match="oracle_tracking=True needs displacement=True"):
@@ -362,7 +367,7 @@ def test_displacement_leaves_the_id_zone_and_success_follows_the_objects(envs, t
 
 
 def test_shift_end_effector_moves_the_arm_and_carried_objects(envs):
-    env = envs("stack", render_point_cloud=False, displacement=True, displacement_chunks=[0, 50])
+    env = envs("stack", render_point_cloud=False, displacement=True, displacement_chunks=[0, 18])  # green: after these steps
     oracle = env.task.oracle()
     oracle.reset()
     td = env.reset(seed=2)
