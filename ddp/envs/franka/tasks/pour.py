@@ -18,10 +18,11 @@ Modelled with small balls as tea:
   allotted time (``timer``), before the teapot is carried back.
 * OOD: the cup is moved 15 cm further out (y -0.15) at chunk 6, while the
   lifted teapot travels toward it (fully outside its ID zone). The scripted
-  oracle closes the gripper at step ~36, tilts from ~71, untilts from ~112
-  and starts carrying the pot back at ~142, so a ``timer`` of 12 chunks
-  after the closure chunk (5) ends the pouring subtask at chunk 17, between
-  the end of the pour and the set-down; ``oracle_tracking`` snaps back then too.
+  oracle (version 3, seeds 0-2) closes the gripper at steps 35-37, tilts from
+  69-74, untilts from 109-116 and starts carrying the pot back at 131-139, so
+  a ``timer`` of 12 chunks after the closure chunk (5) ends the pouring
+  subtask at chunk 17 (step 136): after the pour and before the set-down,
+  mid-untilt on some seeds; ``oracle_tracking`` snaps back then too.
 * Pouring: the pot is tilted about the base x axis (spout down) by ~115
   degrees with the spout edge over the cup; the balls leave over the spout
   edge.
