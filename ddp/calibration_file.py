@@ -25,8 +25,9 @@ __all__ = ["calibration_path", "model_digest", "load_calibration", "save_calibra
 FORMAT = "ddp-detector-calibration"
 #: bumped whenever the code changes what a calibration means (the statistic, how tau is set, which ID
 #: episodes it comes from); a file of another version is fitted again. 2: calibration seeds past one draw of
-#: MetaWorld's initial states go to the next draw (they replayed its 50 layouts)
-VERSION = 2
+#: MetaWorld's initial states go to the next draw (they replayed its 50 layouts); 3: a task's failure for good
+#: revokes an episode's success (Franka press: an over-press after a good press), which selects tau's episodes
+VERSION = 3
 
 
 def calibration_path(checkpoint) -> Path:

@@ -178,7 +178,8 @@ def _chunks_per_episode(exp, overrides: dict) -> int:
         # episodes are cut from the collector's stream every `chunks` chunks: one that ended early would
         # run into the next (its seed, success and detector trace mixed with another episode's)
         raise RecipeError("must be false for evaluation: episodes run their full length and count success "
-                          "at any step (DP3's protocol)", source=exp.source, key="env.terminate_on_success")
+                          "at any step (DP3's protocol; a task's failure for good revokes it)", source=exp.source,
+                          key="env.terminate_on_success")
     return math.ceil(steps / exp.recipe.policy.action_steps)
 
 
@@ -306,7 +307,8 @@ def _summarise(traj, env_index: int, seed: int, latents: bool = False) -> dict:
         "seed": seed,
         "env": env_index,
         # the episode's success so far after its last chunk (ChunkedEnv keeps it, and revokes it where the task
-        # failed for good; equal to any chunk's success otherwise)
+        # failed for good; equal to any chunk's success otherwise). first_success_chunk stays where a success
+        # was revoked: when the good press came
         "success": bool(success[-1]),
         "chunks": int(traj.batch_size[0]),
         "first_success_chunk": int(success.nonzero()[0]) if bool(success.any()) else None,

@@ -12,7 +12,8 @@ variance) runs N seeded episodes (seed i -> ID layout i) under:
 * ``disp+tracking/ID-frame``: the same with the env's oracle tracking (the
   end-effector follows each displacement, and snaps back on two-stage rows).
 
-Success = the task's success at any step of the episode. Also printed: the
+Success = the task's success at any step of the episode, unless it fails for good (press: an
+over-press) before the episode is judged, as evaluation judges it. Also printed: the
 steps to the first success (ID) and the cost per simulated step. Point clouds
 are not rendered (it only measures the oracle).
 
@@ -48,6 +49,8 @@ def run(env, oracle, seed: int) -> int | None:
     for t in range(env.config.episode_steps):
         td["action"] = torch.as_tensor(oracle(td))
         td = env.step(td)["next"]
+        if bool(td["failed"]):  # failed for good (press: an over-press), as evaluation judges it
+            return None
         if bool(td["success"]):
             return t + 1
     return None

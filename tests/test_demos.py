@@ -527,3 +527,25 @@ def test_training_checks_demos_for_non_finite_values_and_short_episodes():
         check_training_episodes(demos([4, 20]), ["action"], 8, "<r>")
     with pytest.raises(ValueError, match="normalizer field 'action': the data hold NaN or inf"):
         MinMaxNormalizer({"action": 4}).fit({"action": torch.tensor([[0.0, 1.0, float("nan"), 2.0]])})
+
+
+class OvershootEnv(LineEnv):
+    """LineEnv whose task fails for good past x = 1.15 (a press past its depth), after its success at x = 1."""
+
+    def __init__(self):
+        super().__init__()
+        self.observation_spec["failed"] = Categorical(2, shape=(1,), dtype=torch.bool)
+
+    def _obs(self, success=False, done=False):
+        return super()._obs(success, done).set("failed", torch.tensor([self.x >= 1.15]))
+
+
+def test_demos_drop_an_episode_that_fails_for_good_after_its_success():
+    """A demo that succeeds and then fails for good (an over-press) is not a successful demo, as evaluation
+    judges it (it was kept: success was read at any step)."""
+    with pytest.raises(DemoGenerationError):
+        generate_demos(OvershootEnv, line_expert, episodes=1, seed=0, max_steps=25, progress=False,
+                       stop_after_success=3, max_attempts=3)
+    demos, _ = generate_demos(OvershootEnv, line_expert, episodes=1, seed=0, max_steps=25, progress=False,
+                              stop_after_success=0)  # cut at the success: the overshoot never happens
+    assert demos.num_episodes == 1

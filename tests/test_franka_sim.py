@@ -35,6 +35,13 @@ def test_config_validation_names_field_and_value():
                                          r"max_episode_steps 96 no chunk acts on it"):
         FrankaEnvConfig(task="press", displacement=True, displacement_chunks=[12])
     FrankaEnvConfig(task="press", displacement=True, displacement_chunks=[10])  # observed at 88: acted on
+    # a snap-back only the oracle makes: checked with oracle tracking, past the episode's last step
+    FrankaEnvConfig(task="pour", displacement=True, displacement_chunks=[20])  # its snap-back (step 248) never runs
+    with pytest.raises(ValueError, match=r"oracle's snap-back of cup starts at step 248, past the episode's last step "
+                                         r"239"):
+        FrankaEnvConfig(task="pour", displacement=True, displacement_chunks=[20], oracle_tracking=True)
+    FrankaEnvConfig(task="pour", displacement=True, displacement_chunks=[20], oracle_tracking=True,
+                    max_episode_steps=250)
     with pytest.raises(ValueError, match=r"obs_history \(3\) must be <= obs_every \(2\)"):
         FrankaEnvConfig(obs_every=2, obs_history=3)
     with pytest.raises(ValueError, match="oracle_tracking=True needs displacement=True"):

@@ -66,6 +66,8 @@ def _rollout(
         rows["action"].append(action.numpy())
         td.set("action", action)
         td = env.step(td).get("next")
+        if bool(td.get("failed", torch.zeros(1, dtype=torch.bool)).any()):  # failed for good (an over-press)
+            return {name: np.stack(v) for name, v in rows.items()}, False, first_success
         if first_success is None and bool(td.get("success", torch.zeros(1, dtype=torch.bool)).any()):
             first_success = t
         if stop_after_success is not None and first_success is not None and t >= first_success + stop_after_success:

@@ -6,7 +6,8 @@ end-effector shift requested by the controller's tracking or recovery, zero
 for none), executed *before* the chunk through ``base.shift_end_effector``.
 Observations are the base env's stacked over the last M steps
 (``point_cloud`` [M, P, 3], ``agent_pos`` [M, D]), ``privileged`` from the
-last step, ``success`` = any success so far in the episode, ``reward`` = the
+last step, ``success`` = any success so far in the episode (revoked for good
+once the base env's optional ``failed`` flag is set), ``reward`` = the
 chunk's sum, ``chunk_index`` (chunks executed since reset) and, where the base
 env tells its episode's seed (an ``episode_seed`` attribute, as every built-in
 env has), ``episode_seed`` (int64 [1]): the controller keys each episode's
