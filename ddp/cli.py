@@ -257,7 +257,7 @@ def cmd_suite(args) -> int:
         raise DDPError(f"--gpus-per-run: must be >= 0; got {args.gpus_per_run}")
     suite = load_suite(args.suite)
     try:
-        seeds = [int(s) for s in args.seeds.split(",")] if args.seeds else None
+        seeds = [int(s) for s in args.seeds.split(",")] if args.seeds is not None else None
     except ValueError:
         raise DDPError(f"--seeds takes comma-separated integers, got {args.seeds!r}") from None
     chosen = select(suite, tasks=_names(args.tasks, "--tasks"), methods=_names(args.methods, "--methods"),
@@ -276,7 +276,7 @@ def cmd_suite(args) -> int:
     if time_limit is not None and args.report:
         raise DDPError("--time-limit limits the runs; --report only aggregates what is stored")
     if args.dry_run:
-        store, counts = ResultStore(suite.results_dir), {"done": 0, "stale": 0, "missing": 0}
+        store, counts = ResultStore(suite.results_dir, restamp=False), {"done": 0, "stale": 0, "missing": 0}
         again = {r.run_id for r in plan_reevaluation(store, chosen.runs, reevaluate)} if reevaluate else set()
         stored, expected = stored_results(suite.results_dir), []
         resumes = retrains = 0
@@ -331,8 +331,9 @@ def cmd_suite(args) -> int:
         if isinstance(failed, SuiteTimeLimit):
             print(f"ddp: {failed} (no finished run yet: no table)", file=sys.stderr)
             return EXIT_TIME_LIMIT
-        if failed is not None:
-            raise failed
+        if failed is not None:  # a failed run exits 1 (README), whether or not another run finished
+            print(f"ddp: {failed}", file=sys.stderr)
+            return 1
         raise DDPError(f"no finished runs of suite {suite.name!r} in {suite.results_dir} yet")
     paths = write_suite_report(results, suite.results_dir, f"suite {suite.name} ({len(results)}/{len(suite.runs)} runs)",
                                reference=suite.reference, tasks_of_suite=suite.tasks)

@@ -88,6 +88,11 @@ def test_results_stored_under_the_first_hash_are_kept_and_restamped(suite_file, 
     assert run.legacy_hash != run.recipe_hash
     assert store.status(run) == "done" and store.load(run)["recipe_hash"] == run.recipe_hash
     assert json.loads(store.path(run).read_text())["recipe_hash"] == run.recipe_hash  # restamped on disk
+    store.path(run).write_text(json.dumps({**old, "recipe_hash": run.legacy_hash}))
+    reader = ResultStore(tmp_path, restamp=False)  # ddp suite --dry-run: reads, writes nothing
+    assert reader.status(run) == "done"
+    assert json.loads(store.path(run).read_text())["recipe_hash"] == run.legacy_hash
+    store.load(run)
     recipe = copy.deepcopy(run.recipe)
     recipe["eval"]["protocols"] = ["id"]  # overridden by the suite's protocols
     recipe["train"]["log_every_steps"] = 1
@@ -128,6 +133,9 @@ def test_task_protocols_keep_those_a_task_supports(suite_file):
     ({"output_dir": "/scratch"}, "unknown key 'output_dir'; did you mean 'results_dir'"),  # run folders are fixed
     # labels name <task>__<method>__seed<k> files: 'a__b' x 'c' and 'a' x 'b__c' would share one
     ({"methods": {"b__c": {}}}, r"methods.b__c.*without '__'"),
+    ({"methods": {"_dp3": {}}}, r"methods._dp3.*or an '_' at either end"),  # 'x_' x 'dp3' = 'x' x '_dp3'
+    ({"tasks": {"near_": "tiny.yaml"}}, r"tasks.near_.*or an '_' at either end"),
+    ({"results_dir": 5}, r"results_dir: must be a folder path, got 5"),
     ({"tasks": {"near/x": "tiny.yaml"}}, r"tasks.near/x.*letters, digits"),
     ({"methods": {"dp3,ddp": {}}}, r"methods.dp3,ddp.*letters, digits"),
     # protocols the run would refuse after training: named twice, or DDP's on a model without a world model
@@ -736,3 +744,22 @@ def test_a_suite_refuses_an_env_that_cannot_judge_success(suite_file, monkeypatc
     again = dataclasses.replace(run, reevaluate=("id",))
     with pytest.raises(DDPError, match=r"cannot judge success"):
         _reevaluate_run(again, tmp_path, 0.0)
+
+
+def test_an_empty_seed_list_is_an_error_not_every_seed(suite_file, capsys):
+    """--seeds "" (a job script's unset $SEED) ran every seed of the suite; --tasks "" already failed."""
+    from ddp.cli import main
+
+    assert main(["suite", str(suite_file), "--dry-run", "--seeds", ""]) == 2
+    assert "--seeds takes comma-separated integers, got ''" in capsys.readouterr().err
+
+
+def test_a_suite_whose_every_run_failed_exits_1(suite_file, capsys):
+    """README: a failed run exits 1; with nothing stored the error went to the one-line handler's exit 2."""
+    from ddp.cli import main
+
+    data = yaml.safe_load(suite_file.read_text())
+    data["set"] = ["eval.env={displacement_chunk: 99}"]  # refused when the run builds its env, after it started
+    suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert main(["suite", str(suite_file), "--tasks", "near", "--methods", "dp3", "--seeds", "0"]) == 1
+    assert "ddp: 1 run(s) failed: near__dp3__seed0" in capsys.readouterr().err

@@ -457,6 +457,7 @@ def _pool_once(todo: list[RunSpec], finished, failure, *, workers: int, threads:
 
     from ddp.run_jobs import threads_per_job  # (ddp.run_jobs imports the suite's budget module)
 
+    workers = max(1, min(workers, len(todo)))  # one run left on two workers: it gets both cores
     per = threads or threads_per_job(workers)
     # several processes share the cores: OpenMP threads that spin between ops would steal them
     # (read by each spawned worker when it loads torch; a value the user set is kept; restored after)
@@ -598,7 +599,11 @@ def _run_on_ray(todo: list[RunSpec], finished, failure, *, ray, threads: int, gp
     started_here = not ray_mod.is_initialized()
     if started_here:
         address = ray if isinstance(ray, str) else None
-        ray_mod.init(address=address, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+        from ddp.run_jobs import usable_cores
+
+        # a local Ray counts the machine's cores, not the ones this process may use (Slurm, taskset): give it those
+        cpus = {"num_cpus": usable_cores()} if address is None else {}
+        ray_mod.init(address=address, include_dashboard=False, log_to_driver=False, logging_level="ERROR", **cpus)
     try:
         task = ray_mod.remote(num_cpus=threads, num_gpus=gpus, max_retries=0)(_start_or_not)
         pending, logged = {}, {}

@@ -215,9 +215,10 @@ def load_suite(path: str | Path) -> SuiteSpec:
     # labels name result files and run folders (<task>__<method>__seed<k>) and are chosen by --tasks a,b
     for kind, labels in (("tasks", tasks), ("methods", methods)):
         for label in labels:
-            if not _plain(label) or "__" in label:
-                raise RecipeError(f"label {label!r} must be letters, digits, '-' and '_' without '__' (it names "
-                                  "result files and run folders)", source=source, key=f"{kind}.{label}")
+            if not _plain(label) or "__" in label or label.startswith("_") or label.endswith("_"):
+                raise RecipeError(f"label {label!r} must be letters, digits, '-' and '_' without '__' or an '_' at "
+                                  "either end (it names result files and run folders <task>__<method>__seed<k>)",
+                                  source=source, key=f"{kind}.{label}")
     seeds = data.get("seeds", [0])
     if not isinstance(seeds, list) or not seeds or not all(isinstance(s, int) and not isinstance(s, bool)
                                                            for s in seeds):
@@ -289,6 +290,8 @@ def load_suite(path: str | Path) -> SuiteSpec:
                 runs.append(RunSpec(name, label, m_label, seed, task_bench[label], r,
                                     tuple(chosen) if chosen else None, episodes))
     runs.sort(key=lambda r: seeds.index(r.seed))  # seed-major: every task and method once before any repeats
+    if data.get("results_dir") is not None and not isinstance(data["results_dir"], str):
+        raise RecipeError(f"must be a folder path, got {data['results_dir']!r}", source=source, key="results_dir")
     results_dir = Path(data.get("results_dir") or f"results/suites/{name}")
     reference = load_reference(data.get("reference"), source=source)
     return SuiteSpec(name, runs, list(seeds), task_bench, list(methods), results_dir, source, method_protocols,

@@ -38,8 +38,10 @@ def evaluation_seconds(result: dict) -> float:
 
 
 class ResultStore:
-    def __init__(self, directory: str | Path):
+    def __init__(self, directory: str | Path, *, restamp: bool = True):
+        """``restamp=False`` reads only (``ddp suite --dry-run``): a result under the old hash is not rewritten."""
         self.directory = Path(directory)
+        self.restamp = restamp
 
     def path(self, run: RunSpec) -> Path:
         return self.directory / f"{run.run_id}.json"
@@ -61,10 +63,11 @@ class ResultStore:
         if data.get("recipe_hash") != run.legacy_hash:
             return None
         data = {**data, "recipe_hash": current}
-        try:
-            self._write(run, data)
-        except OSError:
-            pass
+        if self.restamp:
+            try:
+                self._write(run, data)
+            except OSError:
+                pass
         return data
 
     def load(self, run: RunSpec) -> dict | None:
