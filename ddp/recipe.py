@@ -129,8 +129,11 @@ def merge(base: dict, top: dict) -> dict:
 
 
 def load_yaml_tree(path: str | os.PathLike, _chain: tuple[Path, ...] = (), _referenced_by: str | None = None) -> dict:
-    """Load a recipe file and resolve its ``base:`` chain (no validation)."""
-    path = Path(path)
+    """Load a recipe file and resolve its ``base:`` chain (no validation). A relative path under ``recipes/``
+    that the working directory lacks names the copy shipped with the package (:func:`ddp.shipped.locate`)."""
+    from ddp.shipped import locate
+
+    path = locate(path) if not _chain else Path(path)
     resolved = path.resolve()
     if resolved in _chain:
         cycle = " -> ".join(str(p) for p in (*_chain, resolved))
@@ -225,7 +228,7 @@ def load_recipe(path: str | os.PathLike | dict, overrides: Iterable[str] = ()) -
                 raise RecipeError(f"must be a path or a list of paths, got {bases!r}", source=source, key=BASE_KEY)
             merged: dict = {}
             for base in bases:
-                merged = merge(merged, load_yaml_tree(base, _referenced_by=source))
+                merged = merge(merged, load_yaml_tree(base, _referenced_by=source))  # (shipped copies too)
             data = merge(merged, data)
     else:
         data, source = load_yaml_tree(path), str(path)

@@ -31,6 +31,7 @@ from pathlib import Path
 
 from ddp.config import without_neutral_defaults
 from ddp.errors import RecipeError
+from ddp.shipped import locate
 
 __all__ = ["RunSpec", "SuiteSpec", "load_suite"]
 
@@ -141,9 +142,9 @@ def load_reference(value, *, source: str) -> dict | None:
 
     where = "reference"
     if isinstance(value, str):
-        if not Path(value).is_file():
+        if not locate(value).is_file():
             raise RecipeError(f"reference file not found: {value}", source=source, key=where)
-        where, value = value, _read_yaml(Path(value), referenced_by=source)
+        where, value = value, _read_yaml(locate(value), referenced_by=source)
     if not isinstance(value, dict) or not isinstance(value.get("values"), dict):
         raise RecipeError("must be {label, values: method -> protocol -> benchmark -> task -> percent}",
                           source=source, key=where)
@@ -180,9 +181,9 @@ def _strings(value, *, key: str, source: str) -> list[str]:
 def _overlay(path: str, *, key: str, source: str) -> dict:
     from ddp.recipe import _read_yaml
 
-    if not Path(path).is_file():
+    if not locate(path).is_file():
         raise RecipeError(f"overlay file not found: {path}", source=source, key=key)
-    data = _read_yaml(Path(path), referenced_by=source)
+    data = _read_yaml(locate(path), referenced_by=source)
     data.pop("base", None)
     data.pop("name", None)
     return data
@@ -197,9 +198,10 @@ def load_suite(path: str | Path) -> SuiteSpec:
     from ddp.schema import validate
 
     source = str(path)
-    if not Path(path).is_file():
-        raise RecipeError(f"suite file not found: {path}", source=source)
-    data = _read_yaml(Path(path))
+    path = locate(path)
+    if not path.is_file():
+        raise RecipeError(f"suite file not found: {source}", source=source)
+    data = _read_yaml(path)
     unknown = sorted(set(data) - KNOWN)
     if unknown:
         raise RecipeError(f"unknown key '{unknown[0]}'{suggest(unknown[0], KNOWN)} (known: {', '.join(sorted(KNOWN))})",
@@ -246,7 +248,7 @@ def load_suite(path: str | Path) -> SuiteSpec:
         task_protocols = _strings(task.get("protocols"), key=f"tasks.{label}.protocols", source=source)
         if task_protocols:
             check_protocols(task_protocols, source=source, key=f"tasks.{label}.protocols")
-        if not Path(task["recipe"]).is_file():
+        if not locate(task["recipe"]).is_file():
             raise RecipeError(f"recipe file not found: {task['recipe']}", source=source, key=f"tasks.{label}.recipe")
         base = load_yaml_tree(task["recipe"])
         task_set = _strings(task.get("set"), key=f"tasks.{label}.set", source=source)
