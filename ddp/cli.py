@@ -447,6 +447,9 @@ def make_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ddp", description="Dream Diffusion Policy: diffusion policies with a world model to dream with."
     )
+    from ddp import __version__
+
+    parser.add_argument("--version", action="version", version=f"ddp {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("list", help="list registered plugins", description="List registered plugins by kind.")

@@ -124,3 +124,12 @@ def test_flags_are_checked_before_any_work(capsys, tmp_path, suite_file):
     assert not (tmp_path / "r").exists()  # nothing trained
     assert main(["list", "scheduler", "--pattern", "zzz*"]) == 0
     assert "(none matching 'zzz*')" in capsys.readouterr().out
+
+
+def test_version_flag_prints_the_package_version(capsys):
+    import ddp
+    from ddp.cli import main
+
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0 and capsys.readouterr().out.strip() == f"ddp {ddp.__version__}"
