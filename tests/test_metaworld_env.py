@@ -112,11 +112,17 @@ def test_envs_import_without_the_simulator():
 def test_check_env_specs_with_every_disturbance(make_env, task):
     from torchrl.envs.utils import check_env_specs
 
-    # chunk_len=1: displacement at step 2 and occlusion from step 2 happen inside the spec rollout
+    # chunk_len=1: a chunk is a step; check_env_specs rolls out 3 steps, so the rollout below goes past every
+    # task's displacement (chunks 2-6) and snap-back (6-8) and checks each step against the spec
     env = make_env(task=task, chunk_len=1, displacement=True, oracle_tracking=True,
                    occlusion_chunk=1, occlusion_mode="noise", **SMALL)
     check_env_specs(env, seed=0)
     assert env.observation_spec["privileged", "object_pos"].shape == (len(PAPER_TASKS[task].bodies), 3)
+    steps = env.rollout(10, break_when_any_done=False)
+    keys = list(env.observation_spec.keys(True, True))
+    assert all(env.observation_spec.is_in(steps[i]["next"].select(*keys)) for i in range(10))
+    moved = steps["next", "privileged", "displacement"].flatten(1).norm(dim=-1)
+    assert bool((moved > 0.05).any())  # the move happened inside the checked steps
 
 
 def test_any_metaworld_task_and_the_registry(make_env):
@@ -555,3 +561,16 @@ def test_env_option_values_from_python_may_be_numpy():
     assert over["seed_tasks"] == 3 and over["settle_steps"] == 5
     cfg = dataclasses.replace(exp.parts["env"].config, **over)  # as the evaluation's env factory makes it
     assert tuple(cfg.crop_min) == (-0.6, 0.3, 0.0) and cfg.seed_tasks == 3 and not cfg.terminate_on_success
+
+
+def test_video_frames_flip_only_the_cameras_mounted_upside_down(make_env, monkeypatch):
+    """MetaWorld's corner cameras are mounted upside down (flipped for videos); the gripper cameras are upright
+    (every frame was flipped, so their videos came out inverted)."""
+    env = make_env(task="button-press", **SMALL)
+    env.reset(seed=0)
+    flips = {}
+    monkeypatch.setattr(env._renderer, "rgb", lambda data, cam, w, h, flip: flips.setdefault(cam, flip))
+    for camera in ("corner2", "behindGripper"):
+        env.render_rgb(16, 16, camera=camera)
+    by_name = {name: flips[env._renderer.camera_id(name, what="video camera")] for name in ("corner2", "behindGripper")}
+    assert by_name == {"corner2": True, "behindGripper": False}
