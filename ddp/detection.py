@@ -398,12 +398,9 @@ def load_rollouts(path) -> dict:
 def read_rollouts(path) -> tuple[dict, dict | None]:
     """The rollouts and their provenance (:func:`load_rollouts`, :func:`rollouts_provenance`), the file opened
     once."""
-    import json
-
     out: dict[str, dict[int, dict]] = {}
     with np.load(path, allow_pickle=False) as data:
-        made_with = (json.loads(data[PROVENANCE_KEY].tobytes().decode()) if PROVENANCE_KEY in data.files
-                     else None)
+        made_with = _provenance(data)
         for key in data.files:
             if key == PROVENANCE_KEY:
                 continue
@@ -422,12 +419,15 @@ def read_rollouts(path) -> tuple[dict, dict | None]:
 def rollouts_provenance(path) -> dict | None:
     """What :func:`save_rollouts` stored about how the rollouts were made; None for a file written without
     (before 2026-12-05)."""
+    with np.load(path, allow_pickle=False) as data:
+        return _provenance(data)
+
+
+def _provenance(data) -> dict | None:
+    """The provenance entry of an opened rollouts ``.npz`` (JSON text stored as bytes), or None."""
     import json
 
-    with np.load(path, allow_pickle=False) as data:
-        if PROVENANCE_KEY not in data.files:
-            return None
-        return json.loads(data[PROVENANCE_KEY].tobytes().decode())
+    return json.loads(data[PROVENANCE_KEY].tobytes().decode()) if PROVENANCE_KEY in data.files else None
 
 
 def format_detect(rep: dict) -> str:

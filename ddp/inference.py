@@ -575,7 +575,7 @@ class DDPController(KeyedModule):
                 if not bool(torch.isfinite(shift).all()):  # a plugin's fault
                     raise NonFiniteError(f"controller: environment {b}, chunk {int(chunk_index[b])}: recovery "
                                          f"'{type(self.recovery).__name__}' returned a non-finite shift "
-                                         f"{torch.as_tensor(shift).tolist()}; no shift is sent")
+                                         f"{shift.tolist()}; no shift is sent")
                 if target is not None and bool(s.tracked[target]):  # a^rec_j = -Delta p_Cj undoes a^track_j
                     ee_shift[b] += shift
                 s.recovered |= recovered

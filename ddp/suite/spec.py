@@ -142,9 +142,10 @@ def load_reference(value, *, source: str) -> dict | None:
 
     where = "reference"
     if isinstance(value, str):
-        if not locate(value).is_file():
+        file = locate(value)
+        if not file.is_file():
             raise RecipeError(f"reference file not found: {value}", source=source, key=where)
-        where, value = value, _read_yaml(locate(value), referenced_by=source)
+        where, value = value, _read_yaml(file, referenced_by=source)
     if not isinstance(value, dict) or not isinstance(value.get("values"), dict):
         raise RecipeError("must be {label, values: method -> protocol -> benchmark -> task -> percent}",
                           source=source, key=where)
@@ -181,9 +182,10 @@ def _strings(value, *, key: str, source: str) -> list[str]:
 def _overlay(path: str, *, key: str, source: str) -> dict:
     from ddp.recipe import _read_yaml
 
-    if not locate(path).is_file():
+    file = locate(path)
+    if not file.is_file():
         raise RecipeError(f"overlay file not found: {path}", source=source, key=key)
-    data = _read_yaml(locate(path), referenced_by=source)
+    data = _read_yaml(file, referenced_by=source)
     data.pop("base", None)
     data.pop("name", None)
     return data
