@@ -35,6 +35,20 @@ def test_episodes_save_load_round_trip(tmp_path):
     assert torch.equal(back.episode(1)["action"][:, 0], torch.arange(9.0) + 100)
 
 
+def test_editing_loaded_episodes_in_place_leaves_the_files_alone(tmp_path):
+    """Loaded episodes are mapped copy-on-write: user code normalising them in place changes its own copy,
+    never the cache or dataset on disk (a shared mapping wrote the edit through)."""
+    e = _episodes()
+    e.save(tmp_path / "demos")
+    back = Episodes.load(tmp_path / "demos")
+    back.steps["agent_pos"].mul_(0)
+    back.steps["action"][0] = -1
+    assert back.steps["agent_pos"].abs().sum() == 0  # the edit holds in this process
+    again = Episodes.load(tmp_path / "demos")
+    assert torch.equal(again.steps["agent_pos"], e.steps["agent_pos"])
+    assert torch.equal(again.steps["action"], e.steps["action"])
+
+
 class _Payload:  # any picklable object: loading it would run code of the file's choosing
     pass
 

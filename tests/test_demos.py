@@ -444,6 +444,36 @@ def test_runs_started_together_generate_a_cache_once(tmp_path, monkeypatch):
     assert all(r["cache_episodes"] == 2 for r in results)
 
 
+def test_a_cache_is_read_under_its_lock(tmp_path, monkeypatch):
+    """load() maps the cache while holding its lock: a run with other settings on the same path waits
+    instead of replacing the cache between this run's check and its read."""
+    pytest.importorskip("metaworld")
+    import fcntl
+    import os
+
+    from ddp.data.sources.metaworld_expert import MetaWorldExpertDemos
+
+    monkeypatch.setattr(MetaWorldExpertDemos, "generate", lambda self, progress=True: (_synthetic(2), {"attempts": 2}))
+    src = _source(_mw_recipe(tmp_path, episodes=2))
+    src.prepare(progress=False)
+    held, real_load = [], Episodes.load
+
+    def probing_load(path):
+        fd = os.open(tmp_path / ".button-press.lock", os.O_RDWR)
+        try:  # another open file asking for the lock without waiting: refused while load() holds it
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            held.append(False)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+        except BlockingIOError:
+            held.append(True)
+        finally:
+            os.close(fd)
+        return real_load(path)
+
+    monkeypatch.setattr(Episodes, "load", staticmethod(probing_load))
+    assert src.load().num_episodes == 2 and held == [True]
+
+
 def test_metaworld_expert_needs_a_metaworld_env(tmp_path):
     from ddp.data.sources.metaworld_expert import MetaWorldExpertConfig, MetaWorldExpertDemos
 

@@ -18,10 +18,12 @@ how to build the expert (``make_expert``). The rest is here:
 * the cache is written to a temporary sibling directory and renamed into
   place, so an interrupted run never leaves a half-written cache, and a
   directory that is not a cache of this format is never overwritten;
-* checking and (re)generating happen under an exclusive ``flock`` on the
-  sibling file ``.<name>.lock``, so runs started together on one machine
-  (``ddp suite --workers``, a local Ray) wait for the first one's demos
-  instead of generating the same cache again.
+* checking, (re)generating and mapping happen under an exclusive ``flock``
+  on the sibling file ``.<name>.lock``, so runs started together on one
+  machine (``ddp suite --workers``, a local Ray) wait for the first one's
+  demos instead of generating the same cache again, and a run with other
+  settings on the same path cannot replace the cache between another's
+  check and its read.
 """
 
 from __future__ import annotations
@@ -326,18 +328,22 @@ class CachedExpertDemos:
         "cache_episodes" (what the cache holds), "stats"}`` (``stats`` of the run
         that generated the cache).
         """
-        regenerate = self.cfg.regenerate if regenerate is None else regenerate
         with cache_lock(self.path):  # another process generating this cache: wait for it, then use it
-            meta = None if regenerate else self.cached_meta()
-            generated = meta is None
-            if generated:
-                self._check_path_is_ours()
-                log.info("generating %d %s demos into %s", self.cfg.episodes, self.label, self.path)
-                demos, stats = self.generate(progress=progress)
-                self.save(demos, stats)
-                meta = {"episodes": demos.num_episodes, "stats": stats}
-            else:
-                self._warn_if_other_software(meta)
+            return self._prepare_locked(progress, regenerate)
+
+    def _prepare_locked(self, progress: bool, regenerate: bool | None) -> dict:
+        """:meth:`prepare`'s work; the caller holds the cache's lock."""
+        regenerate = self.cfg.regenerate if regenerate is None else regenerate
+        meta = None if regenerate else self.cached_meta()
+        generated = meta is None
+        if generated:
+            self._check_path_is_ours()
+            log.info("generating %d %s demos into %s", self.cfg.episodes, self.label, self.path)
+            demos, stats = self.generate(progress=progress)
+            self.save(demos, stats)
+            meta = {"episodes": demos.num_episodes, "stats": stats}
+        else:
+            self._warn_if_other_software(meta)
         return {
             "path": self.path,
             "generated": generated,
@@ -347,21 +353,18 @@ class CachedExpertDemos:
         }
 
     def load(self) -> Episodes:
-        """The demos, memory-mapped from the cache (generated first if missing or stale)."""
-        info = self.prepare(progress=True)
-        try:
-            demos = Episodes.load(self.path)
-        except Exception:  # noqa: BLE001 - another process replacing the cache: wait for its lock, read again
-            info = self.prepare(progress=True)
-            demos = None
-        if demos is None:
+        """The demos, memory-mapped from the cache (generated first if missing or stale). The cache is
+        checked and mapped under its lock: another run replacing it (other settings, one path) waits, and
+        the mapping keeps the files it opened."""
+        with cache_lock(self.path):
+            info = self._prepare_locked(progress=True, regenerate=None)
             try:
                 demos = Episodes.load(self.path)
             except Exception as err:  # noqa: BLE001 - a damaged cache is regenerated once
                 if info["generated"]:
                     raise
                 log.warning("%s: unreadable demo cache (%s); regenerating", self.path, err)
-                self.prepare(progress=True, regenerate=True)
+                self._prepare_locked(progress=True, regenerate=True)
                 demos = Episodes.load(self.path)
         if demos.num_episodes > self.cfg.episodes:  # a larger cache: its first episodes are ours
             demos = Episodes(demos.steps[: int(demos.episode_ends[self.cfg.episodes - 1])],

@@ -114,6 +114,7 @@ class Episodes:
         except RuntimeError as err:
             raise DDPError(f"{path}: the episode data holds something other than tensors (refused: loading "
                            f"it could run code): {str(err).splitlines()[0]}") from None
+        steps = steps.apply(_copy_on_write)
         ends_file = path / "episode_ends.pt"
         if not ends_file.exists():
             raise DDPError(f"{ends_file}: missing (the episode boundaries)")
@@ -131,6 +132,16 @@ class Episodes:
             return cls(steps, ends)
         except ValueError as err:
             raise DDPError(f"{path}: {err} (episode_ends.pt against the {steps.batch_size[0]} stored steps)") from None
+
+
+def _copy_on_write(leaf: torch.Tensor) -> torch.Tensor:
+    """A private mapping of a memory-mapped leaf: pages are read from disk as they are touched, as before,
+    but an in-place edit (user code normalising ``episodes.steps`` in place) stays in this process instead
+    of rewriting the cache or dataset on disk (tensordict maps a writable file shared)."""
+    filename = getattr(leaf, "filename", None)
+    if filename is None or leaf.numel() == 0:
+        return leaf
+    return torch.from_file(str(filename), shared=False, size=leaf.numel(), dtype=leaf.dtype).view(leaf.shape)
 
 
 def _check_leaf_files(steps: Path) -> None:
