@@ -57,16 +57,25 @@ def task_info_mean(episodes: list[dict]) -> dict[str, float]:
 
 
 def write_report(report: dict, out_dir: Path) -> list[Path]:
-    """results.json (strict JSON: NaN -> null), table.md and the plots; returns the plot paths."""
+    """results.json (strict JSON: NaN -> null), table.md and the plots; returns the plot paths, which
+    ``report["plots"]`` and results.json list (the JSON is written first and again once the plots exist,
+    so a plotting failure still leaves the results)."""
     from ddp.plots import plot_report
 
     from ddp.atomic_file import atomic_write
 
+    def write_json():
+        atomic_write(out_dir / "results.json", lambda f: f.write(results_json.dumps(report)), binary=False)
+
     out_dir.mkdir(parents=True, exist_ok=True)  # written whole or not at all (a kill mid-write left half a JSON)
-    atomic_write(out_dir / "results.json", lambda f: f.write(results_json.dumps(report)), binary=False)
+    report["plots"] = []
+    write_json()
     table = markdown_table({report["recipe"]: report}) + detection_table(report)
     atomic_write(out_dir / "table.md", lambda f: f.write(table), binary=False)
-    return plot_report(report, out_dir)
+    plots = plot_report(report, out_dir)
+    report["plots"] = [str(p) for p in plots]
+    write_json()
+    return plots
 
 
 def markdown_table(reports: dict[str, dict]) -> str:

@@ -143,7 +143,7 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
         report["protocols"][name] = protocol_result(episodes_run, seconds=time.perf_counter() - t0,
                                                     thresholds=thresholds, videos=videos, detection=detection,
                                                     detector=section)
-    report["plots"] = [str(p) for p in write_report(report, s.out_dir)]
+    write_report(report, s.out_dir)  # sets report["plots"]
     return report
 
 

@@ -104,4 +104,8 @@ def plot_report(report: dict, out_dir: Path) -> list[Path]:
             paths.append(plot_discrepancy(ep, res.get("tau"), f"{report['recipe']} / {name}, seed {ep['seed']} "
                                           f"({which})",
                                           out_dir / f"discrepancy_{name}.png"))
+    written = {p.name for p in paths}
+    for old in [out_dir / "success.png", *out_dir.glob("discrepancy_*.png")]:
+        if old.name not in written:  # an earlier evaluation's figure in a reused folder: not this report's
+            old.unlink(missing_ok=True)
     return paths

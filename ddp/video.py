@@ -118,8 +118,24 @@ def annotate(frame: np.ndarray, caption: str, colour: tuple[int, int, int], bord
     return np.asarray(image)
 
 
+def gif_frame_ms(fps: int) -> int:
+    """A GIF frame's duration for ``fps``: GIFs count in 10 ms units and viewers slow frames under 20 ms
+    to about 100 ms, so the nearest multiple of 10 ms, at least 20 ms (50 fps at most)."""
+    return max(20, 10 * round(100 / fps))
+
+
+def _even(frame: np.ndarray) -> np.ndarray:
+    """``frame`` with its last row / column repeated where height / width are odd (libx264 encodes even
+    sizes only; an odd one wrote an empty file without an error)."""
+    h, w = frame.shape[:2]
+    if h % 2 == 0 and w % 2 == 0:
+        return frame
+    return np.pad(frame, ((0, h % 2), (0, w % 2)) + ((0, 0),) * (frame.ndim - 2), mode="edge")
+
+
 def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 20) -> Path:
-    """Write frames as MP4 (imageio + ffmpeg) or, without them, as GIF next to ``path``; returns the file."""
+    """Write frames as MP4 (imageio + ffmpeg) or, without them, as GIF next to ``path``; returns the file.
+    Odd frame sizes are padded by one row / column for the MP4 encoder; a GIF plays at most 50 fps."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if not frames:
@@ -132,13 +148,15 @@ def write_video(frames: list[np.ndarray], path: str | Path, fps: int = 20) -> Pa
 
         images = [Image.fromarray(f) for f in frames]
         return atomic_write(path.with_suffix(".gif"), lambda f: images[0].save(
-            f, format="GIF", save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0))
+            f, format="GIF", save_all=True, append_images=images[1:], duration=gif_frame_ms(fps), loop=0))
     mp4 = path.with_suffix(".mp4")
     tmp = mp4.with_name(f".{mp4.stem}.tmp.mp4")  # ffmpeg writes to a path: renamed once whole
     try:
         with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=7, macro_block_size=1) as writer:
             for f in frames:
-                writer.append_data(f)
+                writer.append_data(_even(f))
+        if not tmp.is_file() or tmp.stat().st_size == 0:  # ffmpeg can fail without imageio raising
+            raise RuntimeError(f"{mp4}: the video encoder wrote nothing (ffmpeg's log above says why)")
         tmp.replace(mp4)
     finally:
         tmp.unlink(missing_ok=True)  # a writer that failed part-way leaves no hidden half-file behind

@@ -259,7 +259,7 @@ def test_evaluate_writes_results_table_and_plots(exp, tmp_path, monkeypatch):
     exp.evaluate(["id"], episodes=1, output_dir=tmp_path / "np", progress=False)
     assert json.loads((tmp_path / "np" / "results.json").read_text())["settings"]["eval"]["env"] == {
         "max_episode_steps": 64}
-    assert sorted(written) == ["results.json", "table.md"]
+    assert sorted(set(written)) == ["results.json", "table.md"]  # results.json again once the plots exist
     first = rep["protocols"]["ood_ddp"]["per_episode"][0]
     assert first["mode"][2] == 1.0
     # each chunk's subtask and the controller's shifts: tracked when flagged (chunk 2), recovered at chunk 4

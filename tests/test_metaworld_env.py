@@ -563,14 +563,40 @@ def test_env_option_values_from_python_may_be_numpy():
     assert tuple(cfg.crop_min) == (-0.6, 0.3, 0.0) and cfg.seed_tasks == 3 and not cfg.terminate_on_success
 
 
-def test_video_frames_flip_only_the_cameras_mounted_upside_down(make_env, monkeypatch):
-    """MetaWorld's corner cameras are mounted upside down (flipped for videos); the gripper cameras are upright
+def test_video_frames_turn_only_the_cameras_mounted_upside_down(make_env, monkeypatch):
+    """MetaWorld's corner cameras are mounted upside down (turned for videos); the gripper cameras are upright
     (every frame was flipped, so their videos came out inverted)."""
     env = make_env(task="button-press", **SMALL)
     env.reset(seed=0)
     flips = {}
-    monkeypatch.setattr(env._renderer, "rgb", lambda data, cam, w, h, flip: flips.setdefault(cam, flip))
+    monkeypatch.setattr(env._renderer, "rgb", lambda data, cam, w, h, upside_down: flips.setdefault(cam, upside_down))
     for camera in ("corner2", "behindGripper"):
         env.render_rgb(16, 16, camera=camera)
     by_name = {name: flips[env._renderer.camera_id(name, what="video camera")] for name in ("corner2", "behindGripper")}
     assert by_name == {"corner2": True, "behindGripper": False}
+
+
+def test_an_upside_down_camera_gives_the_upright_view_not_its_mirror():
+    """Two cameras at one place, one rolled half a turn: its frame turned upright equals the other's. A
+    vertical flip alone (the earlier correction) gave the mirror image: the red box on the wrong side."""
+    mujoco = pytest.importorskip("mujoco")
+    from ddp.envs.mujoco_render import SceneRenderer, use_egl
+
+    use_egl()
+    model = mujoco.MjModel.from_xml_string("""<mujoco><worldbody>
+        <light pos="0 0 3"/><geom type="plane" size="1 1 .1" rgba=".5 .5 .5 1"/>
+        <geom type="box" pos=".3 .1 .05" size=".08 .08 .05" rgba="1 0 0 1"/>
+        <geom type="box" pos="-.2 -.25 .05" size=".05 .05 .05" rgba="0 0 1 1"/>
+        <camera name="upright" pos="0 0 1.5" xyaxes="1 0 0 0 1 0"/>
+        <camera name="rolled" pos="0 0 1.5" xyaxes="-1 0 0 0 -1 0"/></worldbody></mujoco>""")
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    renderer = SceneRenderer(model)
+    try:
+        upright = renderer.rgb(data, 0, 64, 48).astype(int)
+        turned = renderer.rgb(data, 1, 64, 48, upside_down=True).astype(int)
+    finally:
+        renderer.close()
+    red = (upright[..., 0] > 150) & (upright[..., 1] < 80)
+    assert red[:, 32:].sum() > 20 and red[:, :32].sum() == 0  # the red box right of centre, as seen upright
+    assert np.abs(upright - turned).mean() < 2.0

@@ -67,6 +67,56 @@ def test_an_mp4_writer_that_fails_leaves_no_hidden_temp_file(tmp_path, monkeypat
     assert list(tmp_path.iterdir()) == []
 
 
+def test_odd_frame_sizes_make_a_whole_mp4(tmp_path):
+    """libx264 encodes even sizes only: a 17 x 17 video was an empty file reported as written."""
+    pytest.importorskip("imageio_ffmpeg")
+    import imageio.v2 as imageio
+
+    from ddp.video import write_video
+
+    frames = [np.full((17, 15, 3), v, dtype=np.uint8) for v in (0, 120, 250, 60, 30)]
+    mp4 = write_video(frames, tmp_path / "seed0.mp4", fps=20)
+    assert mp4.stat().st_size > 0
+    read = imageio.mimread(mp4)
+    assert len(read) == 5 and read[0].shape == (18, 16, 3)
+
+
+def test_an_encoder_that_writes_nothing_is_an_error_not_an_empty_file(tmp_path, monkeypatch):
+    import imageio.v2 as imageio
+
+    from ddp.video import write_video
+
+    class Silent:  # ffmpeg failing inside imageio's writer, which closes without raising
+        def __init__(self, path, **kwargs):
+            Path(path).write_bytes(b"")
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def append_data(self, frame):
+            pass
+
+    monkeypatch.setattr(imageio, "get_writer", Silent)
+    with pytest.raises(RuntimeError, match="wrote nothing"):
+        write_video(FRAMES, tmp_path / "seed1.mp4")
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("fps", "ms"), [(20, 50), (30, 30), (25, 40), (60, 20), (1, 1000)])
+def test_gif_frames_last_what_viewers_play(fps, ms, tmp_path, monkeypatch):
+    """GIF durations count in 10 ms units and viewers slow anything under 20 ms to about 100 ms."""
+    from PIL import Image
+
+    from ddp.video import write_video
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)
+    gif = write_video(FRAMES, tmp_path / "seed0.mp4", fps=fps)
+    assert Image.open(gif).info["duration"] == ms
+
+
 def test_a_figure_is_closed_and_its_file_kept_whole_when_saving_fails(tmp_path, monkeypatch):
     from ddp.plots import _pyplot, save_figure
 
@@ -116,3 +166,27 @@ def test_a_discrepancy_trace_is_drawn_when_the_detector_statistic_is_all_nan(tmp
     assert tmp_path / "discrepancy_ood_ddp.png" in paths and (tmp_path / "discrepancy_ood_ddp.png").stat().st_size
     traces = [(ys, label) for ys, label in drawn if label == "$D_{R-I}$"]  # the D_R-I values, not the NaN scores
     assert len(traces) == 1 and traces[0][0][1:] == [0.2, 1.5, 0.3] and math.isnan(traces[0][0][0])
+
+
+def test_a_reused_folder_keeps_only_this_reports_figures_and_results_json_lists_them(tmp_path):
+    """An earlier evaluation's success.png and discrepancy_<p>.png stayed beside a report that drew none of
+    them, and results.json never listed the figures it came with."""
+    import json
+
+    from ddp.detection import detection_metrics
+    from ddp.eval_report import protocol_result, write_report
+
+    episode = {"seed": 7, "success": True, "chunks": 3, "first_success_chunk": 2, "score": [0.1, 2.0, 0.2],
+               "discrepancy": [0.1, 2.0, 0.2], "mode": [0, 1, 0], "disturbed": [False, True, True]}
+    judged = protocol_result([episode], seconds=1.0, thresholds={"tau": 1.0},
+                             detection=detection_metrics([episode]), detector={"name": "discrepancy", "tau": 1.0})
+    first = {"recipe": "tiny", "episodes": 1, "protocols": {"ood_ddp": judged}}
+    plots = write_report(first, tmp_path)
+    assert {p.name for p in plots} == {"success.png", "discrepancy_ood_ddp.png"}
+    stored = json.loads((tmp_path / "results.json").read_text())
+    assert sorted(Path(p).name for p in stored["plots"]) == ["discrepancy_ood_ddp.png", "success.png"]
+    robot = protocol_result([{**episode, "success": None, "score": [], "discrepancy": []}], seconds=1.0,
+                            thresholds={})
+    second = {"recipe": "tiny", "episodes": 1, "protocols": {"id": robot}}
+    assert write_report(second, tmp_path) == []
+    assert not list(tmp_path.glob("*.png")) and json.loads((tmp_path / "results.json").read_text())["plots"] == []

@@ -473,9 +473,17 @@ def test_aggregation_math(tmp_path):
     assert "ddp|ood|c" not in table["cells"]
     paths = write_suite_report(results, tmp_path, "t")
     md = (tmp_path / "table.md").read_text()
-    assert "| ddp | id | 95 ± 7 (n=20) | 60 ± 14 (n=20) | 30 [11, 60] (n=10) | 78 ± 4 | 30 |" in md
+    # an average: ± std over per-seed averages, then the 95 % interval its 40 episodes allow (two seeds that
+    # agree, as on ood, still leave ±15 points); a one-task average's interval is that task's Wilson interval
+    assert "| ddp | id | 95 ± 7 (n=20) | 60 ± 14 (n=20) | 30 [11, 60] (n=10) | 78 ± 4 [62, 88] (n=40) | 30 [11, 60] (n=10) |" in md
+    assert "| ddp | ood | 70 ± 14 (n=20) | 30 ± 14 (n=20) | - | 50 ± 0 [35, 65] (n=40) | - |" in md
+    assert avg["ci95"] == pytest.approx(list(wilson(20, 40)))  # equal episodes per task: the pooled interval
     assert {p.name for p in paths} >= {"table.md", "table.json", "table.csv"}
-    assert (tmp_path / "table.csv").read_text().splitlines()[0].startswith("method,protocol,a_mean,a_std")
+    rows = (tmp_path / "table.csv").read_text().splitlines()
+    assert rows[0].startswith("method,protocol,a_mean,a_std,a_n,a_seeds,a_lo95,a_hi95,b_mean")
+    first = rows[1].split(",")
+    assert first[2] == "0.95" and float(first[3]) == pytest.approx(math.sqrt(0.005)) and first[4:6] == ["20", "0 1"]
+    assert [float(x) for x in first[6:8]] == pytest.approx(list(wilson(19, 20)))
 
 
 def test_an_average_over_tasks_with_different_seeds_or_missing_tasks_says_so(tmp_path):
@@ -493,8 +501,8 @@ def test_an_average_over_tasks_with_different_seeds_or_missing_tasks_says_so(tmp
     assert dp3["missing_tasks"] == ["b"] and dp3["std"] == pytest.approx(math.sqrt(0.02))
     write_suite_report(results, tmp_path, "t")
     md = (tmp_path / "table.md").read_text()
-    assert "| ddp | id | 70 ± 44 (n=30) | 55 ± 7 (n=20) | 63 † |" in md
-    assert "| dp3 | id | 50 ± 14 (n=20) | - | 50 ± 14 (1/2 tasks) |" in md
+    assert "| ddp | id | 70 ± 44 (n=30) | 55 ± 7 (n=20) | 63 [48, 75] (n=50) † |" in md
+    assert "| dp3 | id | 50 ± 14 (n=20) | - | 50 ± 14 [30, 70] (n=20) (1/2 tasks) |" in md
 
 
 def test_an_average_over_part_of_the_suites_tasks_is_marked_everywhere(tmp_path):
@@ -507,11 +515,14 @@ def test_an_average_over_part_of_the_suites_tasks_is_marked_everywhere(tmp_path)
     assert table["cells"]["ddp|id|avg:mw"]["missing_tasks"] == ["c"]
     ref = {"label": "paper", "tolerance": 10, "values": {"ddp": {"id": {"mw": {"a": 90, "b": 60, "c": 10}}}}}
     write_suite_report(results, tmp_path, "t", reference=ref, tasks_of_suite=suite_tasks)
-    assert "| ddp | id | 100 [72, 100] (n=10) | 50 [24, 76] (n=10) | 75 (2/3 tasks) |" in (tmp_path / "table.md").read_text()
+    assert "| ddp | id | 100 [72, 100] (n=10) | 50 [24, 76] (n=10) | 75 [53, 89] (n=20) (2/3 tasks) |" in (tmp_path / "table.md").read_text()
     assert "| ddp | id | mw (2/3 tasks) | 75.0 | 75 | +0.0 | yes |" in (tmp_path / "vs_reference.md").read_text()
     rows = (tmp_path / "table.csv").read_text().splitlines()
-    assert rows[0] == "method,protocol,a_mean,a_std,b_mean,b_std,avg:mw_mean,avg:mw_std,avg:mw_tasks,avg:mw_uneven_seeds"
-    assert rows[1] == "ddp,id,1.0,,0.5,,0.75,,2/3,False"
+    assert rows[0] == ("method,protocol," + ",".join(f"{c}_{k}" for c in ("a", "b") for k in
+                       ("mean", "std", "n", "seeds", "lo95", "hi95")) + ",avg:mw_mean,avg:mw_std,avg:mw_n,avg:mw_seeds,"
+                       "avg:mw_lo95,avg:mw_hi95,avg:mw_tasks,avg:mw_uneven_seeds")
+    lo, hi = wilson(15, 20)
+    assert rows[1].startswith("ddp,id,1.0,,10,0,") and rows[1].endswith(f",0.75,,20,0,{lo},{hi},2/3,False")
     assert "missing_tasks" not in aggregate(results, {"a": "mw", "b": "mw"})["cells"]["ddp|id|avg:mw"]
 
 
@@ -581,7 +592,7 @@ def test_reference_rows_sit_under_their_rows_and_average_the_same_tasks(tmp_path
         "ddp": {"id": {"mw": {"a": 90, "b": 70, "c": 10, "avg": 12.5}, "x": {"a": 40}}}}}, source="s")
     write_suite_report(results, tmp_path, "t", reference=ref)
     md = (tmp_path / "table.md").read_text().splitlines()
-    row = md.index("| ddp | id | 100 [72, 100] (n=10) | 50 [24, 76] (n=10) | 20 [6, 51] (n=10) | 75 | 20 |")
+    row = md.index("| ddp | id | 100 [72, 100] (n=10) | 50 [24, 76] (n=10) | 20 [6, 51] (n=10) | 75 [53, 89] (n=20) | 20 [6, 51] (n=10) |")
     # the task columns, then the mean of the published numbers over the suite's tasks (not the paper's 12.5)
     assert md[row + 1] == "| ddp | id (paper) | 90 | 70 | 40 | 80 | 40 |"
     assert md[row + 2].startswith("| dp3 | id |") and "(paper)" not in md[row + 2]  # no numbers: no row

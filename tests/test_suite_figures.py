@@ -13,6 +13,19 @@ def test_unequal_seed_episodes_draw_the_std_not_a_pooled_interval_around_another
     assert _errors(cell) == (pytest.approx(50.0), pytest.approx(50.0), pytest.approx(50.0))  # clipped std
 
 
+def test_an_average_without_a_std_draws_the_interval_its_episodes_allow():
+    """One seed (or tasks with different seeds): no std, and the bar had no error bar at all."""
+    from ddp.suite.report import aggregate
+
+    runs = [{"task": t, "method": "ddp", "seed": 0, "benchmark": "mw", "protocols": {"id": {
+        "success_rate": k / 20, "successes": k, "episodes": 20}}} for t, k in (("a", 15), ("b", 12))]
+    avg = aggregate(runs)["cells"]["ddp|id|avg:mw"]
+    mean, lower, upper = _errors(avg)
+    assert "std" not in avg and mean == pytest.approx(67.5)
+    assert (mean - lower, mean + upper) == (pytest.approx(100 * avg["ci95"][0]), pytest.approx(100 * avg["ci95"][1]))
+    assert 10 < lower < 20 and 10 < upper < 20
+
+
 def _capture(monkeypatch, method: str) -> list[tuple[tuple, dict]]:
     import matplotlib.axes
 

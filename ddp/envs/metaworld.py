@@ -500,8 +500,8 @@ class MetaWorldEnv(MujocoCloudEnv):
     def render_rgb(self, width: int = 256, height: int = 256, camera: str | None = None) -> np.ndarray:
         """A colour frame ``[height, width, 3]`` uint8 of the current state (videos); ``camera``
         defaults to the point-cloud camera. MetaWorld's corner cameras are mounted upside down (their
-        images come out with the table on top): a camera whose image-up direction points down is flipped
-        vertically (the gripper cameras are upright)."""
+        images come out with the table on top): a camera whose image-up direction points down gives its
+        frame turned 180 degrees (the gripper cameras are upright)."""
         cam = self._renderer.camera_id(camera or self.config.camera, what="video camera")
         upside_down = float(self.sim.data.cam_xmat[cam].reshape(3, 3)[2, 1]) <= 0.0  # image up (camera y): world z
-        return self._renderer.rgb(self.sim.data, cam, width, height, flip=upside_down)
+        return self._renderer.rgb(self.sim.data, cam, width, height, upside_down=upside_down)

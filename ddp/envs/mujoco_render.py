@@ -119,15 +119,17 @@ class SceneRenderer:
         self._depth.update_scene(data, camera=camera, scene_option=self._hide_sites)
         return self._depth.render()
 
-    def rgb(self, data, camera: int, width: int, height: int, flip: bool = False) -> np.ndarray:
-        """A colour frame ``[height, width, 3]`` uint8 (``flip``: upside down, for cameras mounted so)."""
+    def rgb(self, data, camera: int, width: int, height: int, upside_down: bool = False) -> np.ndarray:
+        """A colour frame ``[height, width, 3]`` uint8. ``upside_down``: the camera is rolled about half a
+        turn (its image-up points down), so the frame is turned 180 degrees (a vertical flip alone would
+        mirror the scene: a render never is)."""
         key = (width, height)
         if key not in self._rgb:
             self._rgb[key] = self._new(width, height)
         renderer = self._rgb[key]
         renderer.update_scene(data, camera=camera, scene_option=self._rgb_option)
         image = renderer.render()
-        return (image[::-1] if flip else image).copy()
+        return (image[::-1, ::-1] if upside_down else image).copy()
 
     def close(self) -> None:
         for renderer in [self._depth, *self._rgb.values()]:

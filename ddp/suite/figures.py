@@ -37,12 +37,13 @@ def _grid(n: int, cols: int = 5) -> tuple[int, int]:
 
 def _errors(cell: dict | None) -> tuple[float, float | None, float | None]:
     """(mean, lower, upper) error-bar lengths in percent; NaN mean for a missing cell, None lengths for a cell
-    with no spread to draw (an average over one seed, or over tasks with different seeds).
+    with no spread to draw.
 
     A task's cell (successes of episodes) gets the 95 % Wilson interval of all its episodes pooled over seeds:
     with two or three seeds a std says little, and one kind of bar for every task keeps methods with one
     and with several seeds comparable (the spread between seeds shows as their dots). Seeds with unequal
-    episode counts, and averages, get the std of their per-seed rates, clipped to 0-100 %."""
+    episode counts, and averages, get the std of their per-seed rates, clipped to 0-100 %; an average with
+    no std (one seed, or tasks with different seeds) gets the 95 % interval its episodes allow."""
     if cell is None:
         return float("nan"), None, None
     from ddp.suite.report import wilson  # (the report module imports this one)
@@ -61,6 +62,9 @@ def _errors(cell: dict | None) -> tuple[float, float | None, float | None]:
     if "std" in cell:
         std = 100 * cell["std"]
         return mean, min(std, mean), min(std, 100 - mean)
+    if "ci95" in cell:
+        lo, hi = cell["ci95"]
+        return mean, max(0.0, mean - 100 * lo), max(0.0, 100 * hi - mean)
     return mean, None, None
 
 
@@ -147,8 +151,9 @@ def plot_table(table: dict, columns: list[str], path: Path, title: str, referenc
     handles = [plt.Rectangle((0, 0), 1, 1, color=colours[i]) for i in range(len(rows))]
     labels = [f"{m} / {p}" for m, p in rows]
     handles.append(plt.Line2D([], [], color="black", lw=0.8, marker="_", ms=6))
-    labels.append("error bar: task, 95 % Wilson interval over its episodes (seeds pooled);\n"
-                  "average, std over seeds")
+    labels.append("error bar: task, 95 % Wilson interval over its episodes (seeds pooled;\n"
+                  "std over seeds where their episode counts differ); average, std over\n"
+                  "seeds (one seed: 95 % interval from its episodes)")
     if several_seeds:
         handles.append(plt.Line2D([], [], color="black", marker="o", ls="", ms=3))
         labels.append("one seed's rate")

@@ -40,6 +40,16 @@ def wilson(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float,
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
+def average_interval(mean: float, episodes: list[int]) -> tuple[float, float]:
+    """The 95 % interval of an average of task success rates that the episodes' own (binomial) noise
+    allows, for tasks of ``episodes`` episodes each (over their seeds): the Wilson interval of ``mean``
+    over the effective count ``tasks**2 / sum(1 / episodes)`` (the pooled episodes where every task has
+    the same number; the average then is the pooled rate). Two seeds that agree give a std of 0; this says
+    how far 20 episodes a task still leave the average."""
+    n = len(episodes) ** 2 / sum(1 / e for e in episodes)
+    return wilson(mean * n, n)
+
+
 def _cell(rates: list[float], successes: int, episodes: int, seeds: list[int]) -> dict:
     cell = {"mean": float(np.mean(rates)), "seeds": seeds, "episodes": episodes, "successes": successes,
             "per_seed": rates}
@@ -127,6 +137,9 @@ def aggregate(results: list[dict], tasks_of_suite: dict[str, str] | None = None)
                 per_seed = [float(np.mean([per_task_seed[t][s] for t in have])) for s in seeds]
                 task_means = [float(np.mean(list(per_task_seed[t].values()))) for t in have]
                 cell = {"mean": float(np.mean(task_means)), "tasks": have, "seeds": seeds, "per_seed": per_seed}
+                counts = [cells[f"{m}|{p}|{t}"]["episodes"] for t in have]
+                cell["episodes"] = sum(counts)
+                cell["ci95"] = list(average_interval(cell["mean"], counts))
                 uneven = any(set(per_task_seed[t]) != set(seeds) for t in have)
                 if uneven:  # the mean uses every run, a std over the shared seeds would describe fewer: none
                     cell["uneven_seeds"] = True
@@ -146,6 +159,9 @@ def format_cell(cell: dict | None) -> str:
         text += f" ± {percent(cell['std'])}"
     elif "wilson95" in cell:
         lo, hi = cell["wilson95"]
+        text += f" [{percent(lo)}, {percent(hi)}]"
+    if "ci95" in cell:  # an average: the interval its episodes allow, beside any std over seeds
+        lo, hi = cell["ci95"]
         text += f" [{percent(lo)}, {percent(hi)}]"
     if "episodes" in cell:
         text += f" (n={cell['episodes']})"
@@ -172,7 +188,8 @@ def markdown(table: dict, title: str, reference: dict | None = None) -> str:
     ref = reference_cells(table, reference)
     label = reference["label"] if reference else ""
     lines = [f"{title}: success rate in %, mean ± std over seeds (one seed: [95 % Wilson interval]); "
-             "n = episodes over all seeds; an average is the mean of its task means (†: its tasks have "
+             "n = episodes over all seeds; an average is the mean of its task means, ± std of the per-seed "
+             "averages, [95 % interval from its episodes' binomial noise] (†: its tasks have "
              "different seeds, so no std; (k/n tasks): runs of only k tasks)"
              + (f"; rows marked ({label}) are the published numbers" if ref else ""),
              "", "| method | protocol | " + " | ".join(cols) + " |", "|---|---|" + "---|" * len(cols)]
@@ -261,17 +278,29 @@ def write_suite_report(results: list[dict], out_dir: str | Path, title: str,
     cols = _columns(table)
     buffer = io.StringIO(newline="")
     w = csv.writer(buffer)
-    # an average also says which of its benchmark's tasks it covers (k/n) and whether their seeds differ
+    # every cell: mean, std over seeds (empty with one), episodes, seeds, its 95 % interval (a task's Wilson
+    # interval of its pooled episodes, an average's from its episodes' noise); an average also says which of
+    # its benchmark's tasks it covers (k/n) and whether their seeds differ
     w.writerow(["method", "protocol", *(f"{c}_{k}" for c in cols
-                                        for k in (("mean", "std", "tasks", "uneven_seeds") if c.startswith("avg:")
-                                                  else ("mean", "std")))])
+                                        for k in ("mean", "std", "n", "seeds", "lo95", "hi95",
+                                                  *(("tasks", "uneven_seeds") if c.startswith("avg:") else ())))])
     for m, p in table["rows"]:
         row = [m, p]
         for c in cols:
             cell = table["cells"].get(f"{m}|{p}|{c}")
-            row += ["" if cell is None else cell["mean"], "" if cell is None else cell.get("std", "")]
+            if cell is None:
+                row += [""] * (8 if c.startswith("avg:") else 6)
+                continue
+            if "ci95" in cell:
+                lo, hi = cell["ci95"]
+            elif cell.get("episodes"):
+                lo, hi = wilson(cell["successes"], cell["episodes"])
+            else:
+                lo = hi = ""
+            row += [cell["mean"], cell.get("std", ""), cell.get("episodes", ""),
+                    " ".join(str(s) for s in cell["seeds"]), lo, hi]
             if c.startswith("avg:"):
-                row += ["", ""] if cell is None else [_coverage(cell), bool(cell.get("uneven_seeds"))]
+                row += [_coverage(cell), bool(cell.get("uneven_seeds"))]
         w.writerow(row)
     write("table.csv", buffer.getvalue())
     paths = [out / "table.md", out / "table.json", out / "table.csv", out / "cost.md"]
