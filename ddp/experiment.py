@@ -84,7 +84,8 @@ class Experiment:
         Without a checkpoint to resume, training starts from ``model``'s current weights: the seed's
         initialisation after ``build``, or weights loaded with :meth:`load_checkpoint` (fine-tuning). A second
         ``train(resume=False)`` on the same experiment therefore continues from the trained weights; ``build``
-        the recipe again for a fresh start."""
+        the recipe again for a fresh start. The normaliser is fitted to the demonstrations only when the
+        model has none fitted: fine-tuned weights keep the input and action scaling they were trained under."""
         from ddp.train import Trainer
 
         return Trainer(self, output_dir=output_dir, progress=progress).fit(resume=resume)

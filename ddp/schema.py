@@ -121,7 +121,7 @@ class TrainConfig:
     weight_decay: float = 1e-6
     warmup_steps: int = 500
     epochs: int = 500
-    max_steps: int | None = None  # stop early after this many optimiser steps
+    max_steps: int | None = None  # stop early after this many optimiser steps (at most epochs x batches)
     lr_schedule: Literal["cosine", "constant"] = "cosine"
     grad_clip_norm: float | None = None
     checkpoint_every_epochs: int = 50

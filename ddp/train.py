@@ -26,7 +26,7 @@ from ddp.distributed import env_ranks, process_group
 from ddp.errors import CheckpointError, DDPError, RecipeError
 from ddp.models.ddp_policy import FRAME_INDEX
 from ddp.models.ema import EMA
-from ddp.preemption import interruption, signals_deferred, stop_requests, stop_signals
+from ddp.preemption import Preempted, interruption, signals_deferred, stop_requests, stop_signals
 from ddp.recipe import recipe_changes
 from ddp.run_dir import LOGS_DIR, RunLock, remove_leftovers, set_aside_previous_run, trim_csv_logs
 
@@ -249,12 +249,19 @@ class Trainer:
         state = load_checkpoint(ckpt_path) if resume and ckpt_path.exists() else None
         if state is not None:
             check_resumable(ckpt_path, state, exp.resolved)
-        if state is None:
+        # fitted once: weights loaded for fine-tuning (or trained by an earlier call) keep the scaling they learned
+        if state is None and not bool(model.normalizer.fitted):
             model.normalizer.fit({k: episodes.steps[k] for k in ("action", "agent_pos", "point_cloud")})
         model.to(self.device).train()
         optimizer = make_optimizer(model, cfg)
         per_epoch = self._batches_per_epoch(len(dataset))
-        total = cfg.max_steps or cfg.epochs * per_epoch
+        total = cfg.epochs * per_epoch
+        if cfg.max_steps is not None:
+            if cfg.max_steps > total and self.ranks.main:
+                warnings.warn(f"train.max_steps ({cfg.max_steps}) is more than train.epochs ({cfg.epochs}) x "
+                              f"{per_epoch} batches: training stops after {total} steps (raise train.epochs for "
+                              f"more)", UserWarning, stacklevel=3)
+            total = min(cfg.max_steps, total)  # the cosine schedule ends where training does
         lr_sched = torch.optim.lr_scheduler.LambdaLR(
             optimizer, warmup_cosine(cfg.warmup_steps, total, cfg.lr_schedule)
         )
@@ -328,6 +335,7 @@ class Trainer:
             return dict(zip(sums, ranks.all_reduce_mean([v / count for v in sums.values()], self.device)))
 
         saved_step = step if state is not None else -1
+        start_step = step
         # the noise streams as they were at the last step boundary: a checkpoint holds the state of a step
         # boundary, whatever the streams drew since (an interruption in the middle of a step)
         boundary_noise = {i: noises[i].get_state() for i in mine}
@@ -351,30 +359,33 @@ class Trainer:
                                           f"why); rank {ranks.rank} stops too")
                 saved_step = step
                 return ckpt_path
-            payload = {
-                "model": model.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "lr_scheduler": lr_sched.state_dict(),
-                "noise_rng": streams[0] if micro == 1 else [streams[i] for i in range(micro)],
-                "step": step,
-                "epoch": epoch,
-                "batch_in_epoch": batch_in_epoch,
-                "recipe": exp.to_yaml(),
-                "train_seconds": None if earlier_seconds is None else earlier_seconds + time.perf_counter() - t0,
-                "losses": dict(last_means),  # the last logged window's loss terms
-                # the window being logged: a resumed run's first row then covers all its steps
-                "log_window": {"count": count, "sums": window},
-            }
-            if ema is not None:
-                payload["ema"] = ema.state_dict()
-            if refresh and table_step is not None:  # an exact resume needs the targets of the last refresh
-                payload["target_table"] = model.target_table.detach().cpu()
-                payload["target_table_step"] = table_step
-                payload["target_table_frames"] = table_frames
+            def payload() -> dict:
+                out = {
+                    "model": model.state_dict(),
+                    "optimizer": optimizer.state_dict(),
+                    "lr_scheduler": lr_sched.state_dict(),
+                    "noise_rng": streams[0] if micro == 1 else [streams[i] for i in range(micro)],
+                    "step": step,
+                    "epoch": epoch,
+                    "batch_in_epoch": batch_in_epoch,
+                    "recipe": exp.to_yaml(),
+                    "train_seconds": None if earlier_seconds is None else earlier_seconds + time.perf_counter() - t0,
+                    "losses": dict(last_means),  # the last logged window's loss terms
+                    # the window being logged: a resumed run's first row then covers all its steps
+                    "log_window": {"count": count, "sums": window},
+                }
+                if ema is not None:
+                    out["ema"] = ema.state_dict()
+                if refresh and table_step is not None:  # an exact resume needs the targets of the last refresh
+                    out["target_table"] = model.target_table.detach().cpu()
+                    out["target_table_step"] = table_step
+                    out["target_table_frames"] = table_frames
+                return out
+
             # no signal lands in the middle of the write: a second Ctrl-C is noted and acted on after it
             with signals_deferred() as received:
-                try:
-                    path = save_checkpoint(ckpt_path, payload)
+                try:  # the payload too: an error copying it (a CUDA fault surfacing) must not strand the ranks
+                    path = save_checkpoint(ckpt_path, payload())
                 except BaseException:
                     ranks.any(True, self.device)  # the other ranks wait for this write: they stop too
                     raise
@@ -442,9 +453,10 @@ class Trainer:
                             if epoch % cfg.checkpoint_every_epochs == 0:
                                 checkpoint(raise_deferred=False)
                                 stop_at_boundary()
-            except KeyboardInterrupt:  # Ctrl-C, or Preempted (SIGTERM / SIGHUP)
+            except KeyboardInterrupt as stopped:  # Ctrl-C, or Preempted (SIGTERM / SIGHUP)
                 # a further signal waits until the checkpoint is written (the save is what it asks for too)
-                with signals_deferred():
+                before_save = len(requested)
+                with signals_deferred() as during_save:
                     bar.close()
                     # Not when the interruption came in the middle of an update (only a second Ctrl-C, or an
                     # exception raised by the code, can do that: signals wait for a step boundary): that step is
@@ -455,6 +467,10 @@ class Trainer:
                     elif updating and ranks.main:
                         warnings.warn(f"training interrupted in the middle of step {step + 1}'s update: not saved; "
                                       f"{ckpt_path} holds step {max(saved_step, 0)}", RuntimeWarning, stacklevel=2)
+                # (the save's own deferring handler records into ``requested``; this block's catches the rest)
+                preempted = [sig for sig in (*requested[before_save:], *during_save) if sig != signal.SIGINT]
+                if preempted and not isinstance(stopped, Preempted):  # Ctrl-C, then the scheduler's SIGTERM while
+                    raise Preempted(preempted[0]) from stopped  # saving: exit as preempted (143), so it requeues
                 raise
             else:
                 # the run is done: a stop asked for from here on waits until the final checkpoint is written
@@ -462,7 +478,10 @@ class Trainer:
                     bar.close()
                     if count:  # the steps since the last log line: a collective on every rank, before the save
                         last_means = window_means()
-                    path = checkpoint(raise_deferred=False)
+                    # the last epoch's checkpoint, written by this call, holds this step and nothing was logged
+                    # since: not written again (a finished run resumed is: its record and recipe are refreshed)
+                    written_now = saved_step == step and step > start_step
+                    path = ckpt_path if written_now and not count else checkpoint(raise_deferred=False)
                 if requested:
                     raise interruption(requested[0])
             finally:  # the target table is saved with each checkpoint (a resume reloads it), never kept on the model

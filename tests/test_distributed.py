@@ -162,6 +162,40 @@ def test_a_checkpoint_write_that_fails_on_rank_0_stops_every_rank_with_one_line(
     assert not (out / "last.pt").exists()
 
 
+def test_an_error_building_rank_0s_checkpoint_stops_every_rank(tmp_path):
+    """The checkpoint's contents (state dicts copied to the CPU, where a CUDA fault surfaces) were gathered
+    before the guarded write: an error there left the other ranks waiting for rank 0's word (torchrun tore
+    them down without it; a launcher that only sets RANK / WORLD_SIZE left them until the process group timed
+    out)."""
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text(
+        "import os\n"
+        "if os.environ.get('RANK') == '0':\n"
+        "    import ddp.models.ema as e\n"
+        "    def _fault(self, *a, **k):\n"
+        "        raise RuntimeError('CUDA error: an illegal memory access was encountered')\n"
+        "    e.EMA.state_dict = _fault\n"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl",
+           "PYTHONPATH": os.pathsep.join([str(hook), os.environ.get("PYTHONPATH", "")])}
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", "ddp", "train", _recipe(tmp_path), "--set", f"train.output_dir={out}",
+           "--set", "train.num_threads=1", "--quiet"]
+    run = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           start_new_session=True)
+    try:
+        _, stderr = run.communicate(timeout=180)
+    except subprocess.TimeoutExpired:
+        os.killpg(run.pid, 9)  # torchrun and both ranks
+        run.communicate()
+        pytest.fail("rank 1 kept waiting for rank 0's checkpoint")
+    assert run.returncode != 0 and "illegal memory access" in stderr
+    assert "rank 0 could not write the checkpoint (its error says why); rank 1 stops too" in stderr
+    assert not (out / "last.pt").exists()
+
+
 def test_a_busy_output_folder_stops_every_rank_with_one_line(tmp_path):
     """Only rank 0 takes the folder's lock: when another ddp train held it, rank 0 said so in one line and
     rank 1, waiting in the barrier, died with a gloo traceback (on NCCL it would hang until torchrun's

@@ -185,6 +185,58 @@ def test_a_signal_while_the_loop_s_handlers_are_installed_stops_at_the_first_bou
     assert state["step"] <= 1  # stopped at the first step boundary, not after the whole run
 
 
+def test_the_final_checkpoint_is_not_written_twice(tiny_recipe, tmp_path, monkeypatch):
+    """A last epoch that is a checkpoint epoch wrote last.pt, then the end of the run wrote it again."""
+    import ddp.train as train_module
+
+    writes, real = [], train_module.save_checkpoint
+    monkeypatch.setattr(train_module, "save_checkpoint", lambda path, payload: writes.append(payload["step"]) or
+                        real(path, payload))
+    tiny_recipe["train"].update(epochs=2, checkpoint_every_epochs=1, log_every_steps=1, max_steps=None)
+    res = build(tiny_recipe).train(output_dir=tmp_path / "a", progress=False)
+    assert writes == [res.steps // 2, res.steps]
+    writes.clear()  # steps logged since the last checkpoint: the final one writes them
+    tiny_recipe["train"].update(epochs=3, checkpoint_every_epochs=2, log_every_steps=1000)
+    res = build(tiny_recipe).train(output_dir=tmp_path / "b", progress=False)
+    assert writes == [2 * res.steps // 3, res.steps]
+
+
+def test_a_sigterm_during_the_save_after_ctrl_c_exits_as_preempted(tiny_recipe, tmp_path, monkeypatch):
+    """Ctrl-C, then the scheduler's SIGTERM while that save runs: the job exited as interrupted (130), not
+    preempted (143), so a requeue-on-preemption policy dropped it. The checkpoint is written either way."""
+    import signal
+
+    import ddp.train as train_module
+    from ddp.preemption import Preempted
+
+    real = train_module.save_checkpoint
+
+    def save(path, payload):
+        os.kill(os.getpid(), signal.SIGTERM)  # deferred until the write is done
+        return real(path, payload)
+
+    exp = build(tiny_recipe)
+    orig, calls = exp.model.loss, {"n": 0}
+
+    def loss(batch, generator=None):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            monkeypatch.setattr(train_module, "save_checkpoint", save)
+            raise KeyboardInterrupt  # Ctrl-C in the forward pass, before the update
+        return orig(batch, generator=generator)
+
+    exp.model.loss = loss
+    with pytest.raises(Preempted) as stopped:
+        try:
+            exp.train(output_dir=tmp_path / "run", progress=False)
+        except Preempted:
+            raise
+        except KeyboardInterrupt as err:  # (not let through: it would stop pytest itself)
+            raise AssertionError("the run exited as interrupted, not preempted") from err
+    assert stopped.value.signum == signal.SIGTERM and isinstance(stopped.value.__cause__, KeyboardInterrupt)
+    assert load_checkpoint(tmp_path / "run/last.pt")["step"] == 2
+
+
 def test_checkpoint_round_trip_gives_identical_outputs(tiny_recipe, tmp_path):
     exp = build(tiny_recipe)
     exp.train(output_dir=tmp_path, progress=False)

@@ -101,6 +101,39 @@ def test_lr_follows_warmup_then_cosine_or_constant(tiny_recipe, tmp_path, optimi
         LR * expected_factor(total, warmup, total, schedule), abs=1e-15)
 
 
+def test_a_max_steps_beyond_the_epochs_ends_the_schedule_where_training_ends(tiny_recipe, tmp_path, optimiser_lrs):
+    """max_steps 100 on 2 epochs of 4 batches sized the cosine for 100 steps: training stopped after 8 with the
+    learning rate still near its peak, silently."""
+    tiny_recipe["train"].update(lr=LR, warmup_steps=0, max_steps=100, epochs=2, log_every_steps=1)
+    with pytest.warns(UserWarning, match=r"train.max_steps \(100\) is more than train.epochs \(2\) x 4 batches: "
+                                         r"training stops after 8 steps"):
+        res = build(tiny_recipe).train(output_dir=tmp_path, progress=False)
+    assert res.steps == 8 and len(optimiser_lrs.lrs) == 8
+    assert optimiser_lrs.lrs[-1] == pytest.approx(LR * expected_factor(7, 0, 8))  # the cosine's last step
+    assert read_scalar(tmp_path, "lr")[8] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_fine_tuning_loaded_weights_keeps_their_normaliser(tiny_recipe, tmp_path):
+    """Weights loaded for fine-tuning learned under their normaliser's scaling: a fresh fit refitted it to the
+    new demonstrations, so the encoder saw re-scaled inputs and the policy's actions were un-scaled wrongly."""
+    tiny_recipe["train"].update(max_steps=2, epochs=1)
+    fresh = build(tiny_recipe)
+    assert not bool(fresh.model.normalizer.fitted)
+    fresh.train(output_dir=tmp_path / "fresh", progress=False)
+    fitted = {k: v.clone() for k, v in fresh.model.normalizer.state_dict().items()}
+    assert bool(fresh.model.normalizer.fitted)
+
+    tuned = build(tiny_recipe)
+    tuned.load_checkpoint(tmp_path / "fresh" / "last.pt")
+    with torch.no_grad():  # the pretrained scaling differs from what these demos would give
+        tuned.model.normalizer.action_scale.mul_(0.5)
+    pretrained = {k: v.clone() for k, v in tuned.model.normalizer.state_dict().items()}
+    tuned.train(output_dir=tmp_path / "tuned", resume=False, progress=False)
+    for k, v in tuned.model.normalizer.state_dict().items():
+        assert torch.equal(v, pretrained[k]), k
+    assert not torch.equal(pretrained["action_scale"], fitted["action_scale"])
+
+
 # --------------------------------------------------------------------------- 2. gradient clipping
 
 
