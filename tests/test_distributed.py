@@ -134,31 +134,42 @@ def test_a_sigterm_to_one_rank_stops_every_rank_at_the_same_step_with_a_checkpoi
     assert int(rows[-1].split(",")[0]) == state["step"]  # the last logged step is the saved one
 
 
+def _torchrun_with_rank_0_patch(tmp_path, patch: str, timeout: int = 300) -> tuple[int, str]:
+    """Train the tiny recipe on two ranks, ``patch`` (Python source) run at start-up on rank 0 only (a
+    sitecustomize); returns (exit code, stderr). A run past ``timeout`` is killed with its ranks: a failure."""
+    hook = tmp_path / "hook"
+    hook.mkdir()
+    (hook / "sitecustomize.py").write_text("import os\nif os.environ.get('RANK') == '0':\n"
+                                           + "".join(f"    {line}\n" for line in patch.splitlines()))
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl",
+           "PYTHONPATH": os.pathsep.join([str(hook), os.environ.get("PYTHONPATH", "")])}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+           "-m", "ddp", "train", _recipe(tmp_path), "--set", f"train.output_dir={tmp_path / 'run'}",
+           "--set", "train.num_threads=1", "--quiet"]
+    run = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           start_new_session=True)
+    try:
+        _, stderr = run.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(run.pid, 9)  # torchrun and both ranks
+        run.communicate()
+        pytest.fail("a rank kept waiting for rank 0")
+    return run.returncode, stderr
+
+
 def test_a_checkpoint_write_that_fails_on_rank_0_stops_every_rank_with_one_line(tmp_path):
     """Rank 0 writes, the others wait for it: a refused write (here: disk full on rank 0's checkpoint) must
     end every rank with a one-line error, not leave them in the next collective."""
-    hook = tmp_path / "hook"
-    hook.mkdir()
-    (hook / "sitecustomize.py").write_text(
-        "import os\n"
-        "if os.environ.get('RANK') == '0':\n"
-        "    import ddp.checkpoint as c\n"
-        "    def _full(path, write, **kw):\n"
-        "        raise OSError(28, 'No space left on device')\n"
-        "    c.atomic_write = _full\n"
-    )
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl",
-           "PYTHONPATH": os.pathsep.join([str(hook), os.environ.get("PYTHONPATH", "")])}
+    code, stderr = _torchrun_with_rank_0_patch(tmp_path, "import ddp.checkpoint as c\n"
+                                                         "def _full(path, write, **kw):\n"
+                                                         "    raise OSError(28, 'No space left on device')\n"
+                                                         "c.atomic_write = _full")
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           "-m", "ddp", "train", _recipe(tmp_path), "--set", f"train.output_dir={out}",
-           "--set", "train.num_threads=1", "--quiet"]
-    done = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
-    assert done.returncode != 0
-    assert "ddp: error: " + str(out / "last.pt") + ": cannot write the checkpoint: No space left on device" in done.stderr
-    assert "rank 0 could not write the checkpoint (its error says why); rank 1 stops too" in done.stderr
+    assert code != 0
+    assert "ddp: error: " + str(out / "last.pt") + ": cannot write the checkpoint: No space left on device" in stderr
+    assert "rank 0 could not write the checkpoint (its error says why); rank 1 stops too" in stderr
     # no traceback through ddp's code on either rank (torchrun prints its own summary of the failure)
-    assert f'{os.sep}ddp{os.sep}train.py", line' not in done.stderr, done.stderr[-3000:]
+    assert f'{os.sep}ddp{os.sep}train.py", line' not in stderr, stderr[-3000:]
     assert not (out / "last.pt").exists()
 
 
@@ -167,33 +178,13 @@ def test_an_error_building_rank_0s_checkpoint_stops_every_rank(tmp_path):
     before the guarded write: an error there left the other ranks waiting for rank 0's word (torchrun tore
     them down without it; a launcher that only sets RANK / WORLD_SIZE left them until the process group timed
     out)."""
-    hook = tmp_path / "hook"
-    hook.mkdir()
-    (hook / "sitecustomize.py").write_text(
-        "import os\n"
-        "if os.environ.get('RANK') == '0':\n"
-        "    import ddp.models.ema as e\n"
-        "    def _fault(self, *a, **k):\n"
-        "        raise RuntimeError('CUDA error: an illegal memory access was encountered')\n"
-        "    e.EMA.state_dict = _fault\n"
-    )
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl",
-           "PYTHONPATH": os.pathsep.join([str(hook), os.environ.get("PYTHONPATH", "")])}
-    out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
-           "-m", "ddp", "train", _recipe(tmp_path), "--set", f"train.output_dir={out}",
-           "--set", "train.num_threads=1", "--quiet"]
-    run = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                           start_new_session=True)
-    try:
-        _, stderr = run.communicate(timeout=180)
-    except subprocess.TimeoutExpired:
-        os.killpg(run.pid, 9)  # torchrun and both ranks
-        run.communicate()
-        pytest.fail("rank 1 kept waiting for rank 0's checkpoint")
-    assert run.returncode != 0 and "illegal memory access" in stderr
+    code, stderr = _torchrun_with_rank_0_patch(tmp_path, "import ddp.models.ema as e\n"
+                                                         "def _fault(self, *a, **k):\n"
+                                                         "    raise RuntimeError('CUDA error: an illegal memory access')\n"
+                                                         "e.EMA.state_dict = _fault", timeout=180)
+    assert code != 0 and "illegal memory access" in stderr
     assert "rank 0 could not write the checkpoint (its error says why); rank 1 stops too" in stderr
-    assert not (out / "last.pt").exists()
+    assert not (tmp_path / "run" / "last.pt").exists()
 
 
 def test_a_busy_output_folder_stops_every_rank_with_one_line(tmp_path):
