@@ -1,8 +1,12 @@
 """Latency of the DDP control cycle and training throughput (``ddp bench``).
 
 ``obs_to_action_ms`` is encode + policy sampling; ``control_cycle_ms`` the whole controller call with
-the world-model forecast inline; ``controller_latency_ms`` the controller call with the forecast made
-in the background while the chunk executes (``controller.async_forecast``): what a robot waits for.
+the world-model forecast inline (on the CPU single-threaded, as the background forecast runs, so that
+both give the same forecast bit for bit: with several threads the cycle is dearer than encode + policy +
+``world_model_imagine_ms``, which use every thread); ``controller_latency_ms`` the controller call with
+the forecast made in the background while the chunk executes (``controller.async_forecast``): what a
+robot waits for, timed until the call returns its actions (on a GPU, not until the forecast it then
+launched has finished: the controller copies the actions to the CPU, which waits for them).
 
 Medians of many runs after warm-up, at batch 1, CUDA-synchronised on a GPU.
 Numbers, not assertions: compare them across runs in the same process. :func:`compare`
@@ -21,7 +25,7 @@ import time
 import torch
 
 
-def _timed(fn, *, repeats: int, warmup: int, device: torch.device, before=None) -> float:
+def _timed(fn, *, repeats: int, warmup: int, device: torch.device, before=None, sync_after: bool = True) -> float:
     """Median milliseconds of ``fn()``; ``before()`` runs untimed ahead of each call."""
     for _ in range(warmup):
         if before is not None:
@@ -35,7 +39,7 @@ def _timed(fn, *, repeats: int, warmup: int, device: torch.device, before=None) 
             torch.cuda.synchronize()
         t = time.perf_counter()
         fn()
-        if device.type == "cuda":
+        if device.type == "cuda" and sync_after:
             torch.cuda.synchronize()
         times.append(time.perf_counter() - t)
     return 1000 * statistics.median(times)
@@ -85,8 +89,10 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     # what the robot waits for with the next forecast made in the background while the chunk executes
     # (controller.async_forecast): the previous cycle's forecast has finished before the timed call
     live = exp.make_controller(detector=detector, tracker=False, async_forecast=True)
+    # (no device-wide synchronise after the call: it would wait for the background forecast's kernels too; the
+    # actions the call returns are on the CPU, so the policy's kernels are done when it returns)
     out["controller_latency_ms"] = _timed(lambda: live(td.clone()), repeats=repeats, warmup=warmup, device=dev,
-                                          before=live.wait_forecast)
+                                          before=live.wait_forecast, sync_after=False)
     live.close()
     # training throughput on random windows of the recipe's shapes, on a copy: the optimiser steps on noise and
     # the batch's target table must not reach the caller's model (bench(exp) on a loaded checkpoint, then eval)

@@ -412,7 +412,9 @@ def cmd_bench(args) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
     exp = build(args.recipe, args.overrides)
-    steps = exp.recipe.policy.scheduler.get("num_inference_steps")
+    model = exp.model
+    steps = f"policy {model.policy_scheduler.inference_steps}" + (
+        f" / world model {model.world_model_scheduler.inference_steps}" if model.has_world_model else "")
     print(f"{exp.recipe.name}: batch 1, {steps} denoising steps, device {args.device}, {torch.get_num_threads()} threads")
     if args.no_baseline or not exp.recipe.world_model.enabled:
         for k, v in bench(exp, repeats=args.repeats, device=args.device).items():

@@ -248,13 +248,15 @@ def rollout_episodes(exp, controller, *, episodes: int, seed: int, overrides: di
                 break
         finished = True
     finally:
-        wait = getattr(controller, "wait_forecast", None)
+        # the last cycle's background forecast: waited for (nothing may run on the model after us), its thread
+        # stopped, and its error a warning (no cycle is left to collect it); a controller used again restarts it
+        wait = getattr(controller, "close", None) or getattr(controller, "wait_forecast", None)
         _clean_up([
             None if bar is None else bar.close,
             None if collector is None else collector.shutdown,
             None if env is None else (lambda: env.close(raise_if_closed=False)),
             lambda: _restore_threads(threads),  # after the env's close, which may raise the count
-            wait,  # the last cycle's background forecast: nothing may run on the model after us
+            wait,
         ], quiet=not finished)
     return sorted(results, key=lambda r: r["seed"])
 

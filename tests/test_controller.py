@@ -380,7 +380,7 @@ def test_a_failing_close_after_a_failed_evaluation_keeps_the_first_error_and_eve
                                                                                           monkeypatch):
     """The evaluation's cleanup (bar, collector, env, thread count, background forecast) ran one step after
     another: a close failing on a dead worker's broken pipe replaced the worker's own error and skipped the
-    thread-count restore and the wait for the last forecast."""
+    thread-count restore and the close of the controller (its last forecast)."""
     from torchrl.envs import SerialEnv
 
     from ddp.envs.chunked import ChunkedEnv
@@ -399,7 +399,7 @@ def test_a_failing_close_after_a_failed_evaluation_keeps_the_first_error_and_eve
     monkeypatch.setattr(SerialEnv, "close", broken_close)
     monkeypatch.setattr(ChunkedEnv, "_reset", fail)
     ctrl = exp.make_controller()
-    monkeypatch.setattr(ctrl, "wait_forecast", lambda: waited.append(True))
+    monkeypatch.setattr(ctrl, "close", lambda: waited.append(True))
     from ddp.eval_runner import rollout_episodes
 
     before = torch.get_num_threads()
@@ -668,3 +668,30 @@ def test_an_evaluation_without_an_episode_length_names_what_to_set(exp):
     exp.parts["env"] = Part(exp.parts["env"].plugin, NoLength())
     with pytest.raises(RecipeError, match=r"env: env 'synthetic_reach' has no max_episode_steps option"):
         _chunks_per_episode(exp, {})
+
+
+def test_an_evaluation_reports_the_last_background_forecast_s_error(exp):
+    """The forecast launched by an episode's last cycle is collected by no cycle: rollout_episodes waited for
+    it and dropped its error silently (and left the controller's thread running)."""
+    from ddp.eval_runner import rollout_episodes
+
+    ctrl = exp.make_controller(detector={"name": "never"}, tracker=False, forecast_every_cycle=True, async_forecast=True)
+    calls, imagine, fail_at = [], exp.model.imagine, []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) in fail_at:  # the forecast the last cycle launches
+            raise RuntimeError("world model exploded")
+        return imagine(*args, **kwargs)
+
+    exp.model.imagine = counted
+    try:
+        rollout_episodes(exp, ctrl, episodes=1, seed=0, overrides={}, progress=False)
+        assert ctrl._pool is None  # the thread is stopped; a controller used again starts another
+        fail_at.append(len(calls))
+        calls.clear()
+        with pytest.warns(RuntimeWarning, match="forecast failed and was dropped at close: .*world model exploded"):
+            rollout_episodes(exp, ctrl, episodes=1, seed=0, overrides={}, progress=False)
+    finally:
+        del exp.model.imagine
+    assert len(calls) == fail_at[0] and ctrl._pool is None

@@ -573,7 +573,7 @@ def test_cli_bench_prints_the_latency_lines(tmp_path, capsys):
     recipe = _cli_recipe(tmp_path)
     assert main(["bench", recipe, "--repeats", "1", "--no-baseline"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[0].startswith("tiny: batch 1, 4 denoising steps, device cpu, ")
+    assert lines[0].startswith("tiny: batch 1, policy 4 / world model 4 denoising steps, device cpu, ")
     values = {}
     for line in lines[1:]:
         name, value, *unit = line.split()
@@ -584,6 +584,20 @@ def test_cli_bench_prints_the_latency_lines(tmp_path, capsys):
         assert values[name][0] > 0 or name == "detector_ms", (name, lines)  # a threshold test can print 0.0 ms
     assert values["control_cycle_ms"][0] >= values["encoder_ms"][0]  # a cycle encodes, samples and forecasts
     assert values["train_samples_per_s"][1] == [] and values["train_samples_per_s"][0] > 0
+
+
+def test_cli_bench_names_each_model_s_own_denoising_steps(tmp_path, capsys):
+    """The header read the recipe's policy entry: "None denoising steps" where a recipe left the count to
+    the scheduler's default, and never the world model's."""
+    from ddp.cli import main
+
+    recipe = _cli_recipe(tmp_path)
+    assert main(["bench", recipe, "--repeats", "1", "--no-baseline", "--set",
+                 "world_model.scheduler.num_inference_steps=2"]) == 0
+    assert capsys.readouterr().out.startswith("tiny: batch 1, policy 4 / world model 2 denoising steps")
+    from ddp.schedulers.ddpm import DDPMConfig, DDPMScheduler
+
+    assert DDPMScheduler(DDPMConfig(num_train_timesteps=50, num_inference_steps=None)).inference_steps == 50
 
 
 def test_bench_times_the_in_distribution_cycle(tmp_path, monkeypatch):

@@ -243,3 +243,8 @@ class DiscreteDiffusionScheduler(Scheduler):
 
     def _configured_inference_steps(self) -> int:
         return self.config.num_inference_steps
+
+    @property
+    def inference_steps(self) -> int:
+        """How many denoising steps :meth:`sample` takes (the configured count, or the scheduler's default)."""
+        return int(self._configured_inference_steps())

@@ -5,7 +5,9 @@ strided steps (deterministically when ``eta = 0``). Numerically equal to
 ``diffusers.DDIMScheduler`` with the same options (no thresholding,
 ``use_clipped_model_output=False``), except with ``timestep_spacing="trailing"`` and
 ``num_train_timesteps`` not a multiple of ``num_inference_steps``: each step goes to the next listed
-timestep, where diffusers goes to ``k - K // n`` (beside the next one; see ``_previous``).
+timestep, where diffusers goes to ``k - K // n`` (beside the next one; see ``_previous``); and with
+leading spacing and ``steps_offset >= K // n``: the last step here goes to the clean sample
+(``final_alpha_cumprod``), where diffusers stops at ``k - K // n``, still a noisy level.
 """
 
 from __future__ import annotations
