@@ -429,3 +429,58 @@ def test_a_stop_while_a_finished_run_makes_its_result_keeps_the_result(suite_fil
     assert store.load(suite.runs[1]) is None  # the stop held: the next run never started
     log = (suite_file.parent / suite.runs[0].recipe["train"]["output_dir"] / "log.txt").read_text()
     assert log.rstrip().endswith("finished")
+
+
+def test_a_local_ray_gets_this_process_s_cores_and_a_cluster_its_own(tmp_path, monkeypatch):
+    """A local Ray counted the machine's cores: under Slurm or taskset it ran that many runs at once on the
+    few this job may use. A cluster address keeps the cluster's own count."""
+    import sys
+    import types
+
+    import ddp.run_jobs
+    from ddp.suite import runner
+
+    inits = []
+    fake = types.SimpleNamespace(is_initialized=lambda: False, init=lambda **kw: inits.append(kw),
+                                 remote=lambda **kw: (lambda fn: None), shutdown=lambda: None)
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.setattr(ddp.run_jobs, "usable_cores", lambda: 3)
+    limit = runner._Limit(None, tmp_path, say=lambda *_: None)
+    for ray in (True, "ray://head:10001"):
+        runner._run_on_ray([], finished=None, failure=None, ray=ray, threads=1, gpus=0, echo=lambda *_: None,
+                           limit=limit)
+    assert inits[0]["num_cpus"] == 3 and inits[0]["address"] is None
+    assert "num_cpus" not in inits[1] and inits[1]["address"] == "ray://head:10001"
+
+
+@pytest.mark.parametrize(("runs", "workers", "threads", "per"), [(1, 2, None, 4), (3, 2, None, 2), (3, 2, 1, 1)])
+def test_the_pool_gives_each_run_its_share_of_the_cores(runs, workers, threads, per, tmp_path, monkeypatch):
+    """Each run's threads are the usable cores over the workers the pool really starts: one run left on two
+    workers gets every core (it got half); --threads overrides."""
+    import concurrent.futures
+
+    import ddp.run_jobs
+    from ddp.suite import runner
+
+    started, given = [], []
+
+    class Pool:  # the spawned process pool, in this process: records each run's threads
+        def __init__(self, max_workers, **kw):
+            started.append(max_workers)
+
+        def submit(self, fn, run, threads, *rest):
+            given.append(threads)
+            fut = concurrent.futures.Future()
+            fut.set_result({"run": run.run_id})
+            return fut
+
+        def shutdown(self, **kw):
+            pass
+
+    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", Pool)
+    monkeypatch.setattr(ddp.run_jobs, "usable_cores", lambda: 4)
+    limit = runner._Limit(None, tmp_path, say=lambda *_: None)
+    done = []
+    runner._pool_once([_run_stub(tmp_path)] * runs, lambda run, result: done.append(result), None,
+                      workers=workers, threads=threads, echo=lambda *_: None, limit=limit, broken=[])
+    assert started == [min(workers, runs)] and given == [per] * runs and len(done) == runs
