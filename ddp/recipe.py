@@ -51,10 +51,10 @@ def _construct_int(loader: yaml.SafeLoader, node: yaml.Node) -> int:
 
 
 RecipeLoader.add_constructor(_INT, _construct_int)
-RecipeLoader.add_implicit_resolver(
+RecipeLoader.add_implicit_resolver(  # YAML 1.2's core schema (no '_' separators, one sign at most)
     "tag:yaml.org,2002:float",
-    re.compile(r"""^[-+]?(?:[0-9][0-9_]*\.[0-9_]*(?:[eE][-+]?[0-9]+)?|\.[0-9_]+(?:[eE][-+]?[0-9]+)?
-        |[0-9][0-9_]*[eE][-+]?[0-9]+|\.(?:inf|Inf|INF)|[-+]\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$""", re.X),
+    re.compile(r"""^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?
+        |[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$""", re.X),
     list("-+0123456789."),
 )
 
@@ -79,6 +79,16 @@ def _mapping_without_duplicates(loader: yaml.SafeLoader, node: yaml.MappingNode)
 RecipeLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping_without_duplicates)
 
 
+class RecipeDumper(yaml.SafeDumper):
+    """PyYAML's safe dumper that quotes every string either YAML 1.1 or :class:`RecipeLoader` (YAML 1.2) would
+    read as something else: ``'1e-3'`` (a string) was written bare and read back as 0.001."""
+
+
+RecipeDumper.yaml_implicit_resolvers = {k: list(v) for k, v in yaml.SafeDumper.yaml_implicit_resolvers.items()}
+for _first, _resolvers in RecipeLoader.yaml_implicit_resolvers.items():
+    RecipeDumper.yaml_implicit_resolvers.setdefault(_first, []).extend(_resolvers)
+
+
 def load_yaml(text: str) -> Any:
     """Parse recipe YAML (safe: plain data only) with YAML 1.2 number syntax."""
     return yaml.load(text, Loader=RecipeLoader)  # noqa: S506 (RecipeLoader is a SafeLoader)
@@ -98,6 +108,8 @@ def _read_yaml(path: Path, *, referenced_by: str | None = None) -> dict:
                           source=str(path)) from None
     try:
         data = load_yaml(text)
+    except ValueError as err:  # a scalar a resolver took for a number its constructor refused
+        raise RecipeError(f"malformed YAML: {err}", source=str(path)) from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
@@ -173,7 +185,7 @@ def parse_override(text: str) -> tuple[list[str | int], Any]:
         parts.extend(int(i) for i in re.findall(r"\[([0-9]+)\]", match.group(2)))
     try:
         value = load_yaml(raw) if raw.strip() else None
-    except yaml.YAMLError:
+    except (yaml.YAMLError, ValueError):
         raise RecipeError(f"bad override {text!r}: the value is not valid YAML", source="--set", key=key) from None
     return parts, value
 
@@ -184,9 +196,15 @@ def _dotted(parts: list[str | int]) -> str:
 
 
 def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
+    """``data`` with each ``key.path=value`` set, in order. Setting a part's ``name`` to another plugin
+    starts that section afresh, as a recipe merge does: the options the recipe gave the old part are
+    dropped (they belong to it), the ones other ``--set``s give the section are kept, whatever their order."""
     out = copy.deepcopy(data)
+    written: dict[tuple, set] = {}  # section path -> the options --set wrote into it
     for text in overrides:
         parts, value = parse_override(text)
+        section = tuple(parts[:-1])
+        written.setdefault(section, set()).add(parts[-1])
         node = out
         for i, part in enumerate(parts):
             last = i == len(parts) - 1
@@ -202,6 +220,9 @@ def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
                 raise RecipeError(f"cannot set '{_dotted(parts)}': '{where}' is {node!r}, not a mapping",
                                   source="--set", key=_dotted(parts))
             if last:
+                if part == "name" and section and isinstance(node.get("name"), str) and node["name"] != value:
+                    for option in [k for k in node if k != "name" and k not in written[section]]:
+                        del node[option]  # the old part's options (a merge drops them too)
                 node[part] = value
             else:
                 child = node[part] if isinstance(part, int) else node.get(part)
@@ -236,7 +257,8 @@ def load_recipe(path: str | os.PathLike | dict, overrides: Iterable[str] = ()) -
 
 
 def dump_yaml(data: dict) -> str:
-    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
+    """``data`` as YAML that :func:`load_yaml` reads back equal."""
+    return yaml.dump(data, Dumper=RecipeDumper, sort_keys=False, default_flow_style=None)
 
 
 def flatten(data: dict, prefix: str = "") -> dict[str, Any]:

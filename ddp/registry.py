@@ -84,10 +84,16 @@ def register(kind: str, name: str, *, config: type | None = None):
         cfg = config if config is not None else getattr(obj, "Config", None)
         if cfg is None or not dataclasses.is_dataclass(cfg):
             raise PluginError(f"{kind} '{name}' ({obj.__module__}) must declare a config dataclass")
+        if not isinstance(name, str) or not name:
+            raise PluginError(f"{kind} plugin names are non-empty strings; {obj.__module__} gave {name!r}")
         if isinstance(obj, type):
             from ddp.contracts import check
 
             check(kind, obj, name=name, module=obj.__module__)
+        if not _is_builtin(kind, obj.__module__):
+            # a plugin imported before the first lookup (a recipe's plugins:, user code): the built-ins first, so
+            # that taking a built-in name fails here, not in every later lookup of the process
+            _load_builtins(kind)
         existing = _REGISTRY[kind].get(name)
         if existing is not None:
             raise PluginError(
@@ -97,6 +103,11 @@ def register(kind: str, name: str, *, config: type | None = None):
         return obj
 
     return decorate
+
+
+def _is_builtin(kind: str, module: str) -> bool:
+    package = KINDS[kind][0]
+    return module == package or module.startswith(package + ".")
 
 
 def unregister(kind: str, name: str) -> None:

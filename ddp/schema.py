@@ -8,6 +8,8 @@ are validated against that plugin's own config dataclass by
 
 from __future__ import annotations
 
+import copy
+
 import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -392,6 +394,28 @@ def _default(f: dataclasses.Field):
     return f.default_factory() if f.default_factory is not dataclasses.MISSING else dataclasses.MISSING
 
 
+def _named_sections(data: dict, source: str | None) -> dict:
+    """``data`` with each plugin section that names no plugin (``--set policy.scheduler.num_inference_steps=5``
+    on a recipe that leaves the scheduler at its default) started from the default section: its plugin and
+    options under the ones given. A section without a default plugin keeps asking for a name."""
+    defaults, out = None, data
+    for dotted in PART_SECTIONS:
+        node = data
+        for part in dotted.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or "name" in node:
+            continue
+        if defaults is None:
+            defaults = to_dict(from_dict(Recipe, {"name": "defaults"}, source=source))
+        default = _get(defaults, dotted)
+        if not isinstance(default, dict) or "name" not in default:
+            continue
+        if out is data:
+            out = copy.deepcopy(data)
+        _set(out, dotted, {**default, **node})
+    return out
+
+
 def validate(data: dict, source: str | None, *, import_plugins: bool = True) -> tuple[Recipe, dict[str, Part], dict]:
     """Recipe dataclass, resolved parts, and the fully resolved (defaults filled) dict.
 
@@ -401,6 +425,7 @@ def validate(data: dict, source: str | None, *, import_plugins: bool = True) -> 
     modules = data.get("plugins") or []
     if import_plugins and isinstance(modules, list):
         registry.import_plugin_modules([str(m) for m in modules], source=source)
+    data = _named_sections(data, source)
     recipe = from_dict(Recipe, data, source=source)
     resolved = to_dict(recipe)
     parts: dict[str, Part] = {}

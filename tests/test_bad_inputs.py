@@ -108,7 +108,7 @@ CASES = [
     ("unknown-scheduler", lambda t, tr: ["recipe", write(t / "r.yaml", tiny(policy={"scheduler": {"name": "dimm"}}))],
      "unknown scheduler 'dimm'; did you mean 'ddim'"),
     ("unknown-encoder", lambda t, tr: ["recipe", write(t / "r.yaml", tiny(encoder={"name": "pointnet++"}))], "unknown encoder"),
-    ("section-without-name", lambda t, tr: ["recipe", write(t / "r.yaml", "name: a\nencoder: {use_color: true}\n")],
+    ("section-without-name", lambda t, tr: ["recipe", write(t / "r.yaml", "name: a\ndata: {episodes: 2}\n")],
      "missing required option 'name'"),
     ("missing-base", lambda t, tr: ["recipe", write(t / "r.yaml", "base: nope.yaml\nname: a\n")], "base recipe"),
     ("cyclic-base", lambda t, tr: ["recipe", write(t / "r.yaml", "base: r.yaml\nname: a\n")], "cyclic base"),

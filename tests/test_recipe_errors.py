@@ -61,6 +61,8 @@ def test_missing_required_option(tmp_path):
 
 
 def test_missing_plugin_name(tmp_path, good):
+    """A section naming no plugin starts from its default one (the encoder's: dp3); a section without a
+    default plugin (the data source) asks for a name."""
     import yaml
 
     p = tmp_path / "r.yaml"
@@ -68,8 +70,11 @@ def test_missing_plugin_name(tmp_path, good):
     data = yaml.safe_load(good.read_text())
     data["encoder"] = {"out_channels": 32}
     p.write_text(yaml.safe_dump(data))
+    assert build(p).resolved["encoder"]["name"] == "dp3"
+    data["data"] = {"episodes": 2}
+    p.write_text(yaml.safe_dump(data))
     msg = error_of(p)
-    assert msg.startswith(f"{p}: encoder.name: missing required option 'name'") and "dp3" in msg
+    assert msg.startswith(f"{p}: data.name: missing required option 'name'") and "synthetic_reach" in msg
 
 
 def test_unknown_top_level_section(tmp_path, good):
@@ -320,3 +325,57 @@ def test_recipe_numbers_follow_yaml_1_2():
         "a": "1:30.5", "b": "on", "c": "off", "d": "yes", "e": "No", "f": "2024-06-01", "g": True, "h": False}
     assert parse_override("train.lr=1:30.5") == (["train", "lr"], "1:30.5")
     assert "expected bool, got 'on'" in error_of({"name": "x"}, ["train.autocast_bf16=on"])
+
+
+def test_yaml_1_2_floats_only_and_malformed_numbers_are_one_line(tmp_path):
+    """'--.inf' and '._' passed the float resolver, then PyYAML's constructor raised a ValueError traceback."""
+    from ddp.recipe import load_yaml, parse_override
+
+    assert load_yaml("{a: --.inf, b: ._, c: 1_000.5, d: +.inf, e: -.5, f: 1., g: 1e3}") == {
+        "a": "--.inf", "b": "._", "c": "1_000.5", "d": float("inf"), "e": -0.5, "f": 1.0, "g": 1000.0}
+    assert parse_override("train.lr=--.inf") == (["train", "lr"], "--.inf")
+    assert "train.lr: expected float, got '--.inf'" in error_of({"name": "x"}, ["train.lr=--.inf"])
+
+
+def test_a_resolved_recipe_reads_back_equal(tmp_path):
+    """Strings that are numbers only in YAML 1.2 ('1e-3', '1E5', '0o17') were dumped bare and read back as
+    numbers: a checkpoint's recipe with such a name or camera then failed to load."""
+    from ddp.recipe import dump_yaml, load_yaml
+
+    data = {"name": "1e-3", "a": "1E5", "b": "0o17", "c": "yes", "d": "010", "e": ".5", "f": 1e-5, "g": 3,
+            "h": [1, "2", "2024-06-01"], "i": float("inf"), "j": None, "k": "true"}
+    assert load_yaml(dump_yaml(data)) == data
+    exp = build({"name": "1e3", "task": {"num_points": 32}, "data": {"name": "synthetic_reach"}})
+    assert build(load_yaml(exp.to_yaml())).recipe.name == "1e3"
+
+
+def test_setting_an_option_of_a_default_part_keeps_its_plugin(good):
+    """--set policy.scheduler.num_inference_steps=5 (the CLI help's example) on a recipe that leaves the
+    scheduler at its default asked for the section's 'name', blaming the recipe file."""
+    import yaml
+
+    plain = good.parent / "plain.yaml"
+    recipe = yaml.safe_load(good.read_text())
+    recipe["policy"].pop("scheduler", None)
+    recipe.pop("controller", None)
+    plain.write_text(yaml.safe_dump(recipe))
+    exp = build(plain, ["policy.scheduler.num_inference_steps=5", "controller.detector.tau=2.5"])
+    assert exp.resolved["policy"]["scheduler"]["name"] == "ddim"
+    assert exp.resolved["policy"]["scheduler"]["num_inference_steps"] == 5
+    assert exp.resolved["controller"]["detector"]["name"] == "discrepancy"
+    assert exp.resolved["controller"]["detector"]["tau"] == 2.5
+    msg = error_of(plain, ["data.episodes=2", "data.name=null"])  # a section with no default plugin still asks
+    assert "data.name" in msg
+
+
+def test_setting_a_part_s_name_drops_the_old_part_s_options(good):
+    """--set policy.scheduler.name=ddpm kept the recipe's DDIM-only options (an 'unknown option' blamed on the
+    valid file); options other --set's give the new part stay, in either order."""
+    p = good.parent / "trailing.yaml"
+    p.write_text("base: good.yaml\npolicy:\n  scheduler: {name: ddim, timestep_spacing: trailing, num_inference_steps: 2}\n")
+    for order in (["policy.scheduler.name=ddpm", "policy.scheduler.num_inference_steps=7"],
+                  ["policy.scheduler.num_inference_steps=7", "policy.scheduler.name=ddpm"]):
+        scheduler = build(p, order).resolved["policy"]["scheduler"]
+        assert scheduler["name"] == "ddpm" and scheduler["num_inference_steps"] == 7, order
+    same = build(p, ["policy.scheduler.name=ddim"]).resolved["policy"]["scheduler"]
+    assert same["timestep_spacing"] == "trailing" and same["num_inference_steps"] == 2  # not a swap

@@ -204,3 +204,42 @@ def test_a_failing_recipe_plugin_leaves_the_builtins_it_imported(tmp_path):
     assert "'ddim'" in out.split("SCHED")[1].splitlines()[0]
     detectors = out.split("DET")[1].splitlines()[0]
     assert "'discrepancy'" in detectors and "half_registered" not in detectors
+
+
+def test_a_plugin_imported_before_any_lookup_cannot_take_a_builtin_name(tmp_path):
+    """A recipe's plugins: module (or user code) registering a built-in's name before the first lookup took
+    it: then the built-in's own registration failed, and with it every later lookup in the process."""
+    (tmp_path / "early_plugin.py").write_text(textwrap.dedent("""
+        from dataclasses import dataclass
+        import ddp
+        from ddp.detectors.never import NeverDetector
+
+        @dataclass
+        class C:
+            pass
+
+        @ddp.register("detector", "oracle", config=C)
+        class Early(NeverDetector):
+            '''Claims a built-in name before the built-ins load.'''
+        """))
+    script = textwrap.dedent("""
+        from ddp import registry
+        from ddp.errors import DDPError
+        from ddp.schema import validate
+        try:
+            validate({"name": "x", "plugins": ["early_plugin"]}, "plugged.yaml")
+        except DDPError as err:
+            print("ERR", err)
+        validate({"name": "x"}, "other.yaml")  # an unrelated recipe still builds
+        print("MODULE", registry.get("detector", "oracle").module)
+        """)
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{Path(__file__).resolve().parents[1]}"}
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "detector 'oracle' is registered twice: by ddp.detectors.oracle and by early_plugin" in out.stdout
+    assert "MODULE ddp.detectors.oracle" in out.stdout
+
+
+def test_plugin_names_are_strings():
+    with pytest.raises(PluginError, match="plugin names are non-empty strings; .* gave 3"):
+        ddp.register("detector", 3, config=dataclass(type("C", (), {})))(type("D", (NeverDetector,), {}))
