@@ -3,8 +3,10 @@
 For each recipe, ``ddp.bench.compare`` times the DDP model and the same recipe with the
 world model off (the DP3-baseline path, same code paths otherwise) in alternating rounds, and
 prints obs->action, the full control cycle and the training step with their cost ratios (DDP /
-baseline; baseline / DDP for samples per second). Numbers,
-not assertions (issue #12's targets are ratios against this baseline).
+baseline; baseline / DDP for samples per second). The baseline takes the same fast paths as DDP
+(point blocking, the winners-only pool backward, the im2col weight gradient): the training ratios
+are against DP3 on those paths; ``benchmarks/train_step.py`` also times the eager DP3 baseline
+(the paths off), which issue #12's training target names. Numbers, not assertions.
 
     python benchmarks/ddp_vs_dp3.py --threads 2 [--repeats 5] [--train-steps 2] [--batch 32]
 """

@@ -75,16 +75,15 @@ def main(argv=None) -> int:
             fast.sim.reset()
         fast.sim.step(rng.uniform(-1, 1, 4))
 
-    model, data, cam = env.sim.model, env.sim.data, env._cam
+    data, camera = env.sim.data, env._camera  # the env's CloudCamera: its depth renderer and back-projection
+    cam = camera.camera
     env._render_cloud()  # build the renderer, compile FPS
-    renderer, option = env._renderer, env._scene_option
 
     def render_depth():
-        renderer.update_scene(data, camera=cam, scene_option=option)
-        return renderer.render()
+        return camera.renderer.depth(data, cam, camera.size)
 
     depth = render_depth()
-    rays = env._cloud_fn.rays
+    rays = camera._to_cloud.rays
 
     def back_project():
         world = depth_to_points(depth, rays, data.cam_xpos[cam], data.cam_xmat[cam])

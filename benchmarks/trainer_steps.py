@@ -8,7 +8,7 @@ differs between DDP and DP3) cancels. Take ``--steps`` a multiple of ``world_mod
 The medians and their ratios to the first variant are printed.
 Numbers, not assertions. The quickstart's demos must exist (``ddp demos recipes/metaworld/quickstart_ddp.yaml``).
 
-    python benchmarks/trainer_steps.py --threads 1 --steps 80 --rounds 2 \\
+    python benchmarks/trainer_steps.py --threads 1 --steps 100 --rounds 2 \\
         dp3=recipes/metaworld/quickstart_dp3.yaml ddp=recipes/metaworld/quickstart_ddp.yaml \\
         'table100=recipes/metaworld/quickstart_ddp.yaml world_model.target_refresh_every=100'
 """

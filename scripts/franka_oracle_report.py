@@ -13,8 +13,8 @@ variance) runs N seeded episodes (seed i -> ID layout i) under:
   end-effector follows each displacement, and snaps back on two-stage rows).
 
 Success = the task's success at any step of the episode, unless it fails for good (press: an
-over-press) before the episode is judged, as evaluation judges it. Also printed: the
-steps to the first success (ID) and the cost per simulated step. Point clouds
+over-press) at any step, as evaluation judges it (episodes run to their end). Also printed: the
+steps to the first success (ID) and the cost per executed simulated step. Point clouds
 are not rendered (it only measures the oracle).
 
     python scripts/franka_oracle_report.py --episodes 30
@@ -42,18 +42,21 @@ SETTINGS = {
 }
 
 
-def run(env, oracle, seed: int) -> int | None:
-    """One episode; the number of steps to the first success, or None."""
+def run(env, oracle, seed: int) -> tuple[int | None, int]:
+    """One whole episode, as evaluation runs it (to its end: a later failure for good, press's over-press,
+    revokes an earlier success); (steps to the first success, or None when it did not succeed, and the
+    steps executed)."""
     oracle.reset()
     td = env.reset(seed=seed)
+    first = None
     for t in range(env.config.episode_steps):
         td["action"] = torch.as_tensor(oracle(td))
         td = env.step(td)["next"]
-        if bool(td["failed"]):  # failed for good (press: an over-press), as evaluation judges it
-            return None
-        if bool(td["success"]):
-            return t + 1
-    return None
+        if bool(td["failed"]):  # failed for good: the episode fails whatever came before
+            return None, t + 1
+        if first is None and bool(td["success"]):
+            first = t + 1
+    return first, env.config.episode_steps
 
 
 TASKS = ("stack", "pour", "press")
@@ -86,9 +89,9 @@ def main(argv=None) -> int:
                 oracle = env.task.oracle(id_frame=id_frame)
                 start, steps, results = time.perf_counter(), 0, []
                 for seed in seeds:
-                    n = run(env, oracle, seed)
+                    n, executed = run(env, oracle, seed)
                     results.append(n)
-                    steps += n if n is not None else env.config.episode_steps
+                    steps += executed
                 if name == "ID":
                     lengths = [n for n in results if n is not None]
                     ms = 1e3 * (time.perf_counter() - start) / max(1, steps)

@@ -3,10 +3,11 @@
 #   bash scripts/setup.sh            # core
 #   bash scripts/setup.sh dev        # + test tools
 # torch==2.13.0 is installed first: a bare `torch` requirement would pull a
-# multi-GB CUDA build. Where pip finds a CPU wheel of it (this project's machines
-# keep one in their wheel cache) that one is taken; elsewhere on Linux, PyPI's
-# torch==2.13.0 is the CUDA build: name PyTorch's CPU index instead,
-#   TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu bash scripts/setup.sh dev
+# multi-GB CUDA build. Where pip finds a wheel of it without an index (this
+# project's machines keep a CPU one in their wheel cache) that one is taken; on a
+# machine with an NVIDIA GPU (nvidia-smi) PyPI's CUDA build; elsewhere PyTorch's
+# CPU index. TORCH_INDEX_URL names another index, e.g. a CUDA version's:
+#   TORCH_INDEX_URL=https://download.pytorch.org/whl/cu128 bash scripts/setup.sh dev
 set -euo pipefail
 cd "$(dirname "$0")/.."
 EXTRAS="${1:-}"
@@ -17,8 +18,16 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 PIP=("$VENV/bin/python" -m pip)  # an array: a venv path with a space stays one word
 "${PIP[@]}" install -q --upgrade pip >/dev/null
-"$VENV/bin/python" -c "import torch, sys; sys.exit(0 if torch.__version__.startswith('2.13.0') else 1)" 2>/dev/null \
-    || "${PIP[@]}" install -q ${TORCH_INDEX_URL:+--index-url "$TORCH_INDEX_URL"} "torch==2.13.0"
+if "$VENV/bin/python" -c "import torch, sys; sys.exit(0 if torch.__version__.startswith('2.13.0') else 1)" 2>/dev/null; then
+    :  # installed
+elif [ -n "${TORCH_INDEX_URL:-}" ]; then
+    "${PIP[@]}" install -q --index-url "$TORCH_INDEX_URL" "torch==2.13.0"
+elif command -v nvidia-smi >/dev/null 2>&1 \
+        || "${PIP[@]}" install -q --dry-run --ignore-installed --no-deps --no-index "torch==2.13.0" >/dev/null 2>&1; then
+    "${PIP[@]}" install -q "torch==2.13.0"  # a GPU: PyPI's CUDA build; or the wheel pip finds locally
+else
+    "${PIP[@]}" install -q --index-url https://download.pytorch.org/whl/cpu "torch==2.13.0"  # no GPU: the CPU build
+fi
 if [ -n "$EXTRAS" ]; then
     "${PIP[@]}" install -q -e ".[$EXTRAS]"
 else

@@ -33,7 +33,7 @@ then
 fi
 "$FS_VENV/bin/python" -c "import franky_sim, mujoco, numpy; print('franky-sim server env:', '$FS_VENV', '(mujoco', mujoco.__version__ + ', numpy', numpy.__version__ + ')')"
 
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+if ! ldconfig -p 2>/dev/null | grep 'libusb-1.0.so.0' >/dev/null; then  # (grep -q can SIGPIPE ldconfig under pipefail)
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
         apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 \
             || { apt-get update -q >/dev/null 2>&1 && apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1; } \

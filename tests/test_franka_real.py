@@ -372,7 +372,10 @@ def test_realsense_camera_from_a_recording(tmp_path):
     try:
         import pyrealsense2  # noqa: F401
     except ImportError as exc:
-        pytest.skip(f"pyrealsense2 unavailable ({exc}): bash scripts/setup_franky_sim.sh installs it and libusb")
+        why = f"pyrealsense2 unavailable ({exc}): bash scripts/setup_franky_sim.sh installs it and libusb"
+        if os.environ.get("CI"):  # CI installs it: a setup that could not is a failure there, not a skip
+            pytest.fail(why)
+        pytest.skip(why)
     from ddp.envs.franka.pointcloud import backproject
 
     h, w, f = 48, 64, 50.0
@@ -492,6 +495,20 @@ def _settle(backend, seconds=0.3):
     time.sleep(seconds)
 
 
+class _Spy:
+    """``robot`` with each ``move``'s ``asynchronous`` flag recorded in ``handed``."""
+
+    def __init__(self, robot, handed: list):
+        self._robot, self._handed = robot, handed
+
+    def move(self, motion, asynchronous=False, **kw):
+        self._handed.append(asynchronous)
+        return self._robot.move(motion, asynchronous=asynchronous, **kw)
+
+    def __getattr__(self, name):
+        return getattr(self._robot, name)
+
+
 def test_backend_against_franky_sim(franky_sim, record_property):
     from ddp.envs.franka.real import make_real_backend
 
@@ -545,14 +562,21 @@ def test_backend_against_franky_sim(franky_sim, record_property):
         _settle(backend)
         moved = backend.ee_pose()[0] - start
         assert np.allclose(moved, delta, atol=3e-3), moved
-        # one control period per move_to: consecutive targets blend into one motion
-        steps = []
-        for _ in range(8):
-            t = time.perf_counter()
-            backend.move_relative([0.0, -0.005, 0.0])
-            steps.append(time.perf_counter() - t)
-        per_step = float(np.mean(steps))
-        assert per_step == pytest.approx(backend.control_period, abs=0.03)
+        # one control period per move_to: each target is handed to franky without waiting for its motion, so
+        # consecutive targets blend into one motion, and the call returns once the period is over (a lower
+        # bound only: an upper one would time this machine's load, not the backend)
+        steps, handed = [], []
+        robot = backend.robot
+        backend.robot = _Spy(robot, handed)
+        try:
+            for _ in range(8):
+                t = time.perf_counter()
+                backend.move_relative([0.0, -0.005, 0.0])
+                steps.append(time.perf_counter() - t)
+        finally:
+            backend.robot = robot
+        assert handed == [True] * 8
+        assert min(steps) >= backend.control_period - 1e-3
 
         # the safety limits: one command 30 cm away moves at most max_step_translation
         start, q0 = backend.ee_pose()
@@ -568,8 +592,8 @@ def test_backend_against_franky_sim(franky_sim, record_property):
         np.testing.assert_allclose(backend.reachable(near, q0), near)  # within reach: unchanged
 
         latency = float(np.median(latencies[2:]))
-        print(f"move_to per step {per_step * 1e3:.1f} ms; depth frame over the socket {latency * 1e3:.1f} ms")
-        record_property("move_to_s", per_step)
+        print(f"move_to per step {np.mean(steps) * 1e3:.1f} ms; depth frame over the socket {latency * 1e3:.1f} ms")
+        record_property("move_to_s", float(np.mean(steps)))
         record_property("depth_latency_s", latency)
 
         # grasp the pink block and lift it

@@ -582,7 +582,6 @@ def test_cli_bench_prints_the_latency_lines(tmp_path, capsys):
                  "control_cycle_ms", "train_step_ms"):
         assert name in values and values[name][1] == ["ms"], (name, lines)
         assert values[name][0] > 0 or name == "detector_ms", (name, lines)  # a threshold test can print 0.0 ms
-    assert values["control_cycle_ms"][0] >= values["encoder_ms"][0]  # a cycle encodes, samples and forecasts
     assert values["train_samples_per_s"][1] == [] and values["train_samples_per_s"][0] > 0
 
 
