@@ -70,8 +70,11 @@ class Dataset(Protocol):
 
 
 class Detector(Protocol):
-    """Decides OOD per environment: writes its ``"ood"`` key role ([B] bool)."""
+    """Decides OOD per environment: writes its ``"ood"`` key role ([B] bool). ``in_keys`` / ``out_keys``
+    declare what it reads and writes (a real robot refuses a part reading ``("privileged", ...)`` keys)."""
 
+    in_keys: list
+    out_keys: list
     sticky: bool  # True: once OOD, stay until recovery and a D_R-I re-check; False: re-decided every cycle
     needs_discrepancy: bool  # True: the controller must forecast every cycle so D_R-I exists
 
@@ -112,7 +115,11 @@ class Calibratable(Protocol):
 
 
 class Tracker(Protocol):
-    """How far each tracked object moved: writes its ``"offsets"`` key role ([B, K, 3])."""
+    """How far each tracked object moved: writes its ``"offsets"`` key role ([B, K, 3]); ``in_keys`` /
+    ``out_keys`` as for :class:`Detector`."""
+
+    in_keys: list
+    out_keys: list
 
     def forward(self, td): ...
 
@@ -201,6 +208,12 @@ _CALLS: dict[tuple[str, str], tuple[int, tuple[str, ...]]] = {
     ("trigger", "fired"): (3, ()),
     ("encoder", "encode"): (2, ()),
     ("dataset", "load"): (0, ()),
+    ("detector", "forward"): (1, ()),
+    ("detector", "key"): (1, ()),
+    ("detector", "reset"): (0, ()),
+    ("tracker", "forward"): (1, ()),
+    ("tracker", "key"): (1, ()),
+    ("tracker", "reset"): (0, ()),
     ("scheduler", "loss"): (2, ("generator",)),
     ("scheduler", "sample"): (2, ("generator",)),
 }

@@ -31,6 +31,9 @@ def complete(kind: str) -> dict:
         "load": lambda self: None,
         "loss": lambda self, model_fn, x0, *, generator=None: x0.sum(),
         "sample": lambda self, model_fn, noise, *, generator=None: noise,
+        "forward": lambda self, td: td,
+        "key": lambda self, role: role,
+        "reset": lambda self: None,
     }
     for m in methods:
         body[m] = signatures.get(m, lambda self, *a, **k: None)
@@ -74,6 +77,9 @@ def test_a_complete_class_registers_and_each_missing_member_is_named(kind):
         ("recovery", "recover", lambda self, offsets: offsets),  # too few arguments
         ("trigger", "fired", lambda self, obs, chunk_index, subtask_chunks, extra: False),  # a required extra
         ("scheduler", "sample", lambda self, model_fn, noise: noise),  # no generator keyword
+        ("detector", "forward", lambda self: None),  # cannot take the tensordict
+        ("detector", "reset", lambda self, hard: None),  # a required argument core never passes
+        ("tracker", "key", lambda self: None),  # cannot take the role
     ],
 )
 def test_signatures_that_cannot_take_cores_call_are_refused(kind, method, bad):
@@ -91,13 +97,13 @@ def test_builtin_parts_satisfy_their_contracts():
 def test_a_factory_function_is_checked_when_the_recipe_builds_it(tiny_recipe):
     @ddp.register("detector", "half_detector", config=Empty)
     def half_detector(config):
-        """A factory returning an object without sticky / needs_discrepancy."""
+        """A factory returning an object without in_keys / out_keys / sticky / needs_discrepancy."""
         return torch.nn.Identity()
 
     try:
         tiny_recipe["controller"] = {"detector": {"name": "half_detector"}, "tracker": None}
         exp = build(tiny_recipe)
-        with pytest.raises(PluginError, match="detector 'half_detector' .* lacks the attribute 'sticky'"):
+        with pytest.raises(PluginError, match="detector 'half_detector' .* lacks the attribute 'in_keys'"):
             exp.make_controller()
     finally:
         registry.unregister("detector", "half_detector")
