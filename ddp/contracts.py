@@ -78,6 +78,9 @@ class Detector(Protocol):
     sticky: bool  # True: once OOD, stay until recovery and a D_R-I re-check; False: re-decided every cycle
     needs_discrepancy: bool  # True: the controller must forecast every cycle so D_R-I exists
 
+    # optional: ``decides = False`` for a detector that does not decide OOD from observations (``never``,
+    # ``substitution``): evaluation then reports no detection metrics for its protocols (default True)
+
     def forward(self, td): ...
 
     def key(self, role: str): ...

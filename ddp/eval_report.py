@@ -111,8 +111,10 @@ def detection_table(report: dict) -> str:
     for name, r in rows:
         m, det = r["detection"], r.get("detector") or {}
         what = det.get("name", "?")
-        if det.get("name") == "discrepancy":
-            what += f" (alpha {r.get('alpha')})" if det.get("tau") is None else f" (tau {det.get('tau')})"
+        if det.get("tau") is not None:  # a threshold the recipe set, or the calibration's alpha
+            what += f" (tau {det['tau']})"
+        elif r.get("alpha") is not None:
+            what += f" (alpha {r['alpha']})"
         aurocs = [a for a in (m.get("auroc_after_visible") or []) if a is not None and a == a]
         au = "/".join(fmt_num(a, "{:.2f}") for a in m["auroc_after_visible"]) if aurocs else "-"
         n = m["disturbed_episodes"] + m["clean_episodes"]

@@ -138,7 +138,7 @@ def evaluate(exp, protocols=None, *, episodes: int | None = None, output_dir: st
                       if p.suffix in (".mp4", ".gif") and p.stem in names and p.stat().st_mtime >= started - 1]
         thresholds = ctrl.detector.calibration() if isinstance(ctrl.detector, Calibratable) else {}
         detection = None
-        if section.get("name") not in NOT_DECIDING:
+        if getattr(ctrl.detector, "decides", True):  # (the contract's optional flag)
             detection = detection_metrics(episodes_run, reference=thresholds.get("reference"))
         report["protocols"][name] = protocol_result(episodes_run, seconds=time.perf_counter() - t0,
                                                     thresholds=thresholds, videos=videos, detection=detection,
@@ -162,10 +162,6 @@ def provenance(exp, s: EvalSettings, device) -> dict:
             "calibration_seed": s.seed + 100_000, "checkpoint": weights, "model_digest": model_digest(exp.model),
             "code": code_version(), "settings": to_dict(exp.recipe),  # as run: changes made in Python included
             "parts": {key: part.as_dict() for key, part in exp.parts.items() if part is not None}}  # with defaults
-
-
-#: detectors that do not decide OOD from observations (no detection metrics for their protocols)
-NOT_DECIDING = ("never", "substitution")
 
 
 def _detector_section(exp, protocol) -> dict:

@@ -695,3 +695,25 @@ def test_an_evaluation_reports_the_last_background_forecast_s_error(exp):
     finally:
         del exp.model.imagine
     assert len(calls) == fail_at[0] and ctrl._pool is None
+
+
+def test_detection_metrics_follow_the_detector_s_decides_flag_not_its_name(tiny_recipe, tmp_path):
+    """Evaluation listed the built-in non-deciding detectors by name: a plugin detector that decides nothing
+    got detection metrics (and a deciding one named 'never' would have lost them)."""
+    from ddp.detectors.never import NeverConfig, NeverDetector
+    from ddp.registry import register, unregister
+
+    @register("detector", "quiet_plugin", config=NeverConfig)
+    class Quiet(NeverDetector):
+        """Decides nothing (as never does), under another name."""
+
+    try:
+        recipe = dict(tiny_recipe, controller={"detector": {"name": "quiet_plugin"}, "tracker": None})
+        exp = fit_normalizer(build(recipe))
+        rep = exp.evaluate(["id_ddp"], episodes=1, output_dir=tmp_path, progress=False)
+        assert "detection" not in rep["protocols"]["id_ddp"]
+        Quiet.decides = True
+        rep = exp.evaluate(["id_ddp"], episodes=1, output_dir=tmp_path, progress=False)
+        assert "detection" in rep["protocols"]["id_ddp"]
+    finally:
+        unregister("detector", "quiet_plugin")

@@ -23,6 +23,7 @@ class NeverDetector(KeyedModule):
     default_out_keys = {"ood": ("ddp", "ood")}
     sticky = True
     needs_discrepancy = False
+    decides = False  # decides nothing from observations: its protocols get no detection metrics
 
     def __init__(self, config: NeverConfig):
         super().__init__()

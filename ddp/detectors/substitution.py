@@ -38,6 +38,7 @@ class SubstitutionDetector(KeyedModule):
     default_out_keys = {"ood": ("ddp", "ood")}
     sticky = False
     needs_discrepancy = False
+    decides = False  # substitutes by chance, not from observations: no detection metrics
 
     def __init__(self, config: SubstitutionConfig):
         super().__init__()
