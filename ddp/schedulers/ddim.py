@@ -23,7 +23,9 @@ from ddp.schedulers.base import DiscreteDiffusionScheduler, StepOutput, check_di
 
 @dataclass
 class DDIMConfig:
-    """Options of the DDIM scheduler (defaults follow DP3: 100 train steps, 10 inference steps)."""
+    """Options of the DDIM scheduler (the noise schedule and step counts follow DP3: 100 train steps,
+    squaredcos_cap_v2, 10 inference steps; ``prediction_type`` defaults to the paper's epsilon, where DP3
+    and every shipped recipe predict the sample)."""
 
     num_train_timesteps: int = 100
     beta_start: float = 1e-4
