@@ -116,7 +116,6 @@ def test_per_chunk_calibration_reaches_every_protocol(exp, tmp_path):
         "detector", {"name": "discrepancy", "tau": None, "per_chunk": True, "threshold_on": "all"},
         key="controller.detector", source="<test>",  # an untrained policy: no ID episode succeeds
     )
-    exp.recipe.eval.calibration_episodes = 1
     exp.parts["controller.detector"].config.alpha = 0.5  # 2 held-out episodes suffice for alpha 0.5
     exp.recipe.eval.calibration_episodes = 4
     exp.checkpoint_path = tmp_path / "last.pt"  # the calibration is saved beside it
@@ -325,6 +324,16 @@ def test_evaluate_videos_and_parallel_envs_match_serial(exp, tmp_path):
     for key in ("seed", "success", "mode", "chunks"):
         got = [e[key] for e in parallel["protocols"]["ood_ddp"]["per_episode"]]
         assert got == [e[key] for e in serial["protocols"]["ood_ddp"]["per_episode"]], key
+    # those are alike for every episode here (the oracle's schedule, an untrained policy): the D_R-I traces,
+    # which follow each episode's observations, say whether the workers ran the same episodes
+    exp.recipe.controller.forecast_every_cycle = True
+    traces = [[e["discrepancy"] for e in exp.evaluate(["ood_ddp"], episodes=4, num_envs=2, output_dir=tmp_path / d,
+                                                      progress=False, parallel=d == "p2")["protocols"]["ood_ddp"]
+               ["per_episode"]] for d in ("s2", "p2")]
+    assert np.isfinite(np.asarray(traces[0], dtype=float)[:, 1:]).all()
+    assert len({tuple(t) for t in traces[0]}) == 4  # the episodes differ
+    np.testing.assert_allclose(np.asarray(traces[1], dtype=float), np.asarray(traces[0], dtype=float), rtol=1e-5,
+                               equal_nan=True)
 
 
 def test_an_evaluation_leaves_torch_s_thread_count_as_it_found_it(exp, tmp_path):

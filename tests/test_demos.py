@@ -278,6 +278,11 @@ def test_metaworld_demos_reproducible_and_cached(mw_cache, monkeypatch):
 
 
 def test_metaworld_demos_regenerate_when_parameters_change(mw_cache, monkeypatch):
+    """A copy of the module's cache, loaded with one setting changed, is regenerated; loaded unchanged, it
+    is used as it is (each case loaded from a fresh folder had no cache to compare with, so it passed
+    whatever the comparison did)."""
+    import shutil
+
     from ddp.data.sources.metaworld_expert import MetaWorldExpertDemos
 
     cache, _, demos = mw_cache
@@ -293,9 +298,14 @@ def test_metaworld_demos_regenerate_when_parameters_change(mw_cache, monkeypatch
         dict(episodes=4), dict(max_steps=120), dict(stop_after_success=None), dict(seed=7),
         dict(env={**SMALL_ENV, "image_size": 40}), dict(env={**SMALL_ENV, "num_points": 32}), dict(regenerate=True),
     ]  # fmt: skip
+    unchanged = cache / "unchanged"
+    shutil.copytree(cache / "button-press", unchanged / "button-press")
+    _source(_mw_recipe(unchanged)).load()
+    assert calls == []  # the control: the copy matches as it is
     for i, change in enumerate(changes):
         env = change.pop("env", None)
         other = cache / f"other{i}"
+        shutil.copytree(cache / "button-press", other / "button-press")  # a cache to compare with
         recipe = _mw_recipe(other, env=env, **change)
         recipe["task"]["num_points"] = recipe["env"]["num_points"]  # the env's clouds fit the model
         _source(recipe).load()

@@ -180,7 +180,7 @@ def test_a_stop_after_the_last_step_still_writes_the_final_checkpoint(tmp_path, 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
 def test_preemption_signal_saves_and_resumes(tmp_path, sig):
-    r = tiny(tmp_path, max_steps=100_000, log_every_steps=1)
+    r = tiny(tmp_path, max_steps=100_000, epochs=100_000, checkpoint_every_epochs=100_000, log_every_steps=1)
     recipe = tmp_path / "r.yaml"
     recipe.write_text(yaml.safe_dump(r))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}

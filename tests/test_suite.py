@@ -5,8 +5,10 @@ from __future__ import annotations
 import copy
 import json
 import math
+from pathlib import Path
 
 import pytest
+import torch
 import yaml
 
 from conftest import ROOT, TINY
@@ -197,6 +199,18 @@ def test_the_report_labels_stored_runs_as_the_suite_file_does_now(suite_file, ca
     assert table["benchmarks"] == {"tiny_suite": ["near", "far"]}
 
 
+def _same_weights(dir_a: str, dir_b: str) -> None:
+    """Two runs' checkpoints hold the same trained (and EMA) weights: the success rates of 2-step models on
+    one short episode are 0 whatever ran, so they alone could not tell executors apart."""
+    from ddp.checkpoint import load_checkpoint
+
+    a, b = load_checkpoint(Path(dir_a) / "last.pt"), load_checkpoint(Path(dir_b) / "last.pt")
+    for part in ("model", "ema"):
+        assert a[part].keys() == b[part].keys()
+        for k in a[part]:
+            torch.testing.assert_close(a[part][k], b[part][k], rtol=1e-6, atol=1e-7, msg=f"{dir_b}: {part}.{k}")
+
+
 def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
     import ddp.suite.runner as runner
 
@@ -238,6 +252,7 @@ def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
         assert a["train"]["steps"] == 2 and a["train"]["seconds"] > 0
         assert {p: v["success_rate"] for p, v in a["protocols"].items()} == \
             {p: v["success_rate"] for p, v in b["protocols"].items()}
+        _same_weights(run.recipe["train"]["output_dir"].removesuffix("_pool"), run.recipe["train"]["output_dir"])
 
     # and so does a local Ray (one CPU per run), on the first task
     pytest.importorskip("ray")
@@ -251,6 +266,7 @@ def test_runs_resume_and_executors_agree(suite_file, monkeypatch):
     for run in ray_suite.runs:
         a, b = pooled[run.run_id], on_ray[run.run_id]
         assert a["train"]["loss"] == pytest.approx(b["train"]["loss"], rel=1e-6), run.run_id
+        _same_weights(run.recipe["train"]["output_dir"].replace("_ray", "_pool"), run.recipe["train"]["output_dir"])
         assert {p: v["success_rate"] for p, v in a["protocols"].items()} == \
             {p: v["success_rate"] for p, v in b["protocols"].items()}
 

@@ -662,7 +662,9 @@ def test_compare_alternates_rounds_and_takes_their_medians(monkeypatch):
     mine, base, ratio = rows["obs_to_action_ms"]
     assert (mine, base) == (40.0, 30.0) and ratio == pytest.approx(4 / 3)  # medians of 10/40/50 and 20/30/60
     mine, base, ratio = rows["train_samples_per_s"]
-    assert ratio == pytest.approx(base / mine)  # a throughput's cost ratio: baseline / recipe
+    # medians of 100/25/20 (calls 1, 4, 5) and 50/33.3/16.7 (calls 2, 3, 6); a throughput's cost ratio is
+    # baseline / recipe
+    assert (mine, base, ratio) == (25.0, pytest.approx(100 / 3), pytest.approx(4 / 3))
 
 
 
