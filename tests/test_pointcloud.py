@@ -130,3 +130,14 @@ def test_depth_to_cloud_crops_and_samples():
     np.testing.assert_allclose(empty, np.full((4, 3), 5.5))
     with pytest.raises(ValueError, match="crop_low must be below crop_high"):
         DepthToCloud(h, w, 60.0, (0, 0, 1), (1, 1, 0), num_points=4)
+
+
+def test_a_displacement_is_acted_on_only_if_a_chunk_follows_its_first_observation():
+    """The rule both envs refuse schedules by: the move at step k*c is first observed at k*c + c, which must
+    not be the episode's end; the oracle's snap-back must start within the episode."""
+    from ddp.envs.disturbances import Displacement
+
+    move = Displacement(("obj",), (0.1, 0.0, 0.0), chunk=3, tracking="two_stage", snap_back_chunk=5)
+    assert move.acted_on(8, 33) and not move.acted_on(8, 32)  # observed at step 32
+    assert move.snaps_back_in(8, 41) and not move.snaps_back_in(8, 40)  # the snap-back at step 40
+    assert Displacement(("obj",), (0.1, 0.0, 0.0), chunk=3).snaps_back_in(8, 1)  # single-stage: none

@@ -100,6 +100,17 @@ class Displacement:
         """Env step of the two-stage snap-back, or None."""
         return None if self.snap_back_chunk is None else self.snap_back_chunk * chunk_len
 
+    def acted_on(self, chunk_len: int, max_episode_steps: int) -> bool:
+        """Whether a chunk acts after the move is observed: the first observation showing it comes
+        ``chunk_len`` steps after it, and must not end the episode (else an "OOD" protocol measures an
+        episode no policy could react to). The envs refuse a schedule where this is False."""
+        return self.step(chunk_len) + chunk_len < max_episode_steps
+
+    def snaps_back_in(self, chunk_len: int, max_episode_steps: int) -> bool:
+        """Whether the two-stage snap-back (if any) happens within the episode."""
+        snap = self.snap_back_step(chunk_len)
+        return snap is None or snap < max_episode_steps
+
     def replace(self, *, chunk: int | None = None, delta=None) -> "Displacement":
         """A copy with another chunk and/or vector (the snap-back keeps its distance in chunks)."""
         new_chunk = self.chunk if chunk is None else chunk

@@ -215,16 +215,15 @@ class MetaWorldEnvConfig(ObservationOptions):
         if plan is not None and self.max_episode_steps is not None:
             # a move (or the oracle's snap-back) the episode never reaches would leave an "OOD" protocol
             # measuring an undisturbed episode
-            last = self.max_episode_steps - 1
-            move = plan.step(self.chunk_len)
-            if move + self.chunk_len > last:  # the first observation showing it ends the episode: no chunk reacts
+            last, move = self.max_episode_steps - 1, plan.step(self.chunk_len)
+            if not plan.acted_on(self.chunk_len, self.max_episode_steps):
                 raise ValueError(f"displacement_chunk {plan.chunk} starts at step {move} ({self.chunk_len} actions per "
                                  f"chunk): with max_episode_steps {self.max_episode_steps} no chunk acts after the "
                                  f"move is observed (it needs max_episode_steps > {move + self.chunk_len})")
-            snap = plan.snap_back_step(self.chunk_len) if self.oracle_tracking else None
-            if snap is not None and snap > last:
-                raise ValueError(f"the oracle's snap-back chunk {plan.snap_back_chunk} starts at step {snap}, past the "
-                                 f"episode's last step {last} (max_episode_steps {self.max_episode_steps})")
+            if self.oracle_tracking and not plan.snaps_back_in(self.chunk_len, self.max_episode_steps):
+                raise ValueError(f"the oracle's snap-back chunk {plan.snap_back_chunk} starts at step "
+                                 f"{plan.snap_back_step(self.chunk_len)}, past the episode's last step {last} "
+                                 f"(max_episode_steps {self.max_episode_steps})")
 
     def held_out_initial_states(self, block: int = 0) -> dict:
         """Overrides under which no reset draws an initial state that this config's resets draw: a later

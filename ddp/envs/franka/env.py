@@ -259,14 +259,14 @@ class FrankaEnvConfig(ObservationOptions):
             raise ValueError(f"displacement_deltas entries need 3 values (dx, dy, dz); got {self.displacement_deltas}")
         for row in self.displacement_schedule():  # as MetaWorld's: a move no chunk acts on measures nothing
             step = row.step(self.chunk_len)
-            if step + self.chunk_len >= self.max_episode_steps:  # its first observation ends the episode
+            if not row.acted_on(self.chunk_len, self.max_episode_steps):
                 raise ValueError(f"the displacement of {', '.join(row.bodies)} at step {step} is first observed at "
                                  f"step {step + self.chunk_len} ({self.chunk_len} actions per chunk): with "
                                  f"max_episode_steps {self.max_episode_steps} no chunk acts on it (displacement_chunks)")
-            snap = row.snap_back_step(self.chunk_len) if self.oracle_tracking else None  # only the oracle snaps back
-            if snap is not None and snap > self.max_episode_steps - 1:
-                raise ValueError(f"the oracle's snap-back of {', '.join(row.bodies)} starts at step {snap}, past the "
-                                 f"episode's last step {self.max_episode_steps - 1} (displacement_chunks)")
+            if self.oracle_tracking and not row.snaps_back_in(self.chunk_len, self.max_episode_steps):
+                raise ValueError(f"the oracle's snap-back of {', '.join(row.bodies)} starts at step "
+                                 f"{row.snap_back_step(self.chunk_len)}, past the episode's last step "
+                                 f"{self.max_episode_steps - 1} (displacement_chunks)")  # only the oracle snaps back
         if self.oracle_tracking and not self.displacement:
             raise ValueError("oracle_tracking=True needs displacement=True (it tracks the displaced objects)")
         if self.backend == "real" and self.displacement:
