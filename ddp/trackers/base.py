@@ -149,6 +149,15 @@ class ObjectTracker(KeyedModule):
         "carried": ("ddp", "object_carried"),
     }
 
+    def _row_segmentation(self, b: int, segmentation, new_episode: bool):
+        """Row ``b``'s segmentation image when its episode isolates objects by masks, else None (geometry):
+        decided by ``self.isolator.episode_masks`` on each episode's first frame and kept in ``self.masked``
+        (a camera that renders no segmentation labels nothing: the episode uses geometry)."""
+        seg_b = None if segmentation is None else segmentation[b]
+        if new_episode:
+            self.masked[b] = self.isolator.episode_masks(seg_b)
+        return seg_b if self.masked[b] else None
+
     def _read_inputs(self, td, *images: str) -> "TrackerInputs":
         """The batched tracking inputs as numpy arrays (``images``: further camera inputs, e.g. ``"rgb"``)."""
         unbatched = td.batch_dims == 0

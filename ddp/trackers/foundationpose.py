@@ -362,11 +362,8 @@ class FoundationPoseTracker(ObjectTracker):
 
         results = []
         for b in range(B):
-            seg_b = None if seg is None else seg[b]
             new_episode = b not in self.states or (chunk is not None and chunk[b] == 0)
-            if new_episode:  # a camera without segmentation (all -1): geometric masks for the episode
-                self.masked[b] = self.isolator.episode_masks(seg_b)
-            args = (depth[b], K[b], T[b], None if rgb is None else rgb[b], seg_b if self.masked[b] else None,
+            args = (depth[b], K[b], T[b], None if rgb is None else rgb[b], self._row_segmentation(b, seg, new_episode),
                     None if ee is None else ee[b])
             if new_episode:
                 self.states[b] = self._reference(b, *args)  # p^exp: the episode's first (ID) frame

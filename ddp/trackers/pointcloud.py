@@ -467,12 +467,9 @@ class PointCloudTracker(ObjectTracker):
 
         results = []
         for b in range(B):
-            seg_b = None if seg is None else seg[b]
             ee_b = None if ee is None else ee[b]
             new_episode = b not in self.refs or (chunk is not None and chunk[b] == 0)
-            if new_episode:
-                self.masked[b] = self.isolator.episode_masks(seg_b)
-            seg_b = seg_b if self.masked[b] else None
+            seg_b = self._row_segmentation(b, seg, new_episode)
             if new_episode:
                 self.refs[b] = self._reference(depth[b], K[b], T[b], seg_b, ee_b)
             results.append(self._track_env(self.refs[b], depth[b], K[b], T[b], seg_b, ee_b))
