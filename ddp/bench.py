@@ -6,7 +6,8 @@ both give the same forecast bit for bit: with several threads the cycle is deare
 ``world_model_imagine_ms``, which use every thread); ``controller_latency_ms`` the controller call with
 the forecast made in the background while the chunk executes (``controller.async_forecast``): what a
 robot waits for, timed until the call returns its actions (on a GPU, not until the forecast it then
-launched has finished: the controller copies the actions to the CPU, which waits for them).
+launched has finished: the controller copies the actions to the CPU, which waits for them, and the
+observation comes from the CPU, as an env's does).
 
 Medians of many runs after warm-up, at batch 1, CUDA-synchronised on a GPU.
 Numbers, not assertions: compare them across runs in the same process. :func:`compare`
@@ -77,8 +78,11 @@ def bench(exp, *, repeats: int = 20, warmup: int = 3, device: str = "cpu", train
     # timed imagining while the baseline's "never" detector ran its ID path)
     detector = {"name": "discrepancy", "tau": 1e30} if model.has_world_model else {"name": "never"}
     ctrl = exp.make_controller(detector=detector, tracker=False, async_forecast=False)
-    td = TensorDict({"point_cloud": pc, "agent_pos": pos, "chunk_index": torch.ones(1, 1, dtype=torch.long, device=dev)},
-                    batch_size=[1], device=dev)
+    # the observation as an env delivers it, on the CPU (the controller moves it to the model's device): its
+    # actions come back to the CPU before the next forecast is launched, so the timed call's last copy waits
+    # for the policy only (an observation on the GPU would send them back there, behind the forecast's kernels)
+    td = TensorDict({"point_cloud": pc.cpu(), "agent_pos": pos.cpu(), "chunk_index": torch.ones(1, 1, dtype=torch.long)},
+                    batch_size=[1])
     ctrl(td.clone())  # a first cycle so that D_R-I has a forecast to compare with
     window = (1, model.obs_steps, model.encoder.out_dim)
     det_td = TensorDict({("ddp", "latent_real"): torch.rand(window),

@@ -455,7 +455,6 @@ class Trainer:
                                 stop_at_boundary()
             except KeyboardInterrupt as stopped:  # Ctrl-C, or Preempted (SIGTERM / SIGHUP)
                 # a further signal waits until the checkpoint is written (the save is what it asks for too)
-                before_save = len(requested)
                 with signals_deferred() as during_save:
                     bar.close()
                     # Not when the interruption came in the middle of an update (only a second Ctrl-C, or an
@@ -467,8 +466,9 @@ class Trainer:
                     elif updating and ranks.main:
                         warnings.warn(f"training interrupted in the middle of step {step + 1}'s update: not saved; "
                                       f"{ckpt_path} holds step {max(saved_step, 0)}", RuntimeWarning, stacklevel=2)
-                # (the save's own deferring handler records into ``requested``; this block's catches the rest)
-                preempted = [sig for sig in (*requested[before_save:], *during_save) if sig != signal.SIGINT]
+                # (a SIGTERM recorded in the loop after the Ctrl-C, or by the save's own deferring handler, is in
+                # ``requested``; this block's handler catches the rest)
+                preempted = [sig for sig in (*requested, *during_save) if sig != signal.SIGINT]
                 if preempted and not isinstance(stopped, Preempted):  # Ctrl-C, then the scheduler's SIGTERM while
                     raise Preempted(preempted[0]) from stopped  # saving: exit as preempted (143), so it requeues
                 raise

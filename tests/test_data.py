@@ -1,3 +1,4 @@
+import pytest
 import torch
 
 from ddp.data.episodes import Episodes
@@ -47,6 +48,25 @@ def test_editing_loaded_episodes_in_place_leaves_the_files_alone(tmp_path):
     again = Episodes.load(tmp_path / "demos")
     assert torch.equal(again.steps["agent_pos"], e.steps["agent_pos"])
     assert torch.equal(again.steps["action"], e.steps["action"])
+
+
+def test_episodes_that_cannot_be_mapped_privately_load_shared_with_a_warning(tmp_path, monkeypatch):
+    """A private writable mapping is charged its whole size against the commit limit (strict overcommit on a
+    cluster node can refuse it for a large dataset): the data then load as before, shared, and say so."""
+    e = _episodes()
+    e.save(tmp_path / "demos")
+
+    real = torch.from_file
+
+    def refused(*args, shared=False, **kwargs):  # the private mapping only (tensordict's shared one still works)
+        if shared:
+            return real(*args, shared=shared, **kwargs)
+        raise RuntimeError("unable to mmap 2048 bytes from file: Cannot allocate memory (12)")
+
+    monkeypatch.setattr(torch, "from_file", refused)
+    with pytest.warns(RuntimeWarning, match="mapped shared, not copy-on-write .*Cannot allocate memory"):
+        back = Episodes.load(tmp_path / "demos")
+    assert torch.equal(back.steps["agent_pos"], e.steps["agent_pos"])
 
 
 class _Payload:  # any picklable object: loading it would run code of the file's choosing

@@ -201,9 +201,11 @@ def test_the_final_checkpoint_is_not_written_twice(tiny_recipe, tmp_path, monkey
     assert writes == [2 * res.steps // 3, res.steps]
 
 
-def test_a_sigterm_during_the_save_after_ctrl_c_exits_as_preempted(tiny_recipe, tmp_path, monkeypatch):
-    """Ctrl-C, then the scheduler's SIGTERM while that save runs: the job exited as interrupted (130), not
-    preempted (143), so a requeue-on-preemption policy dropped it. The checkpoint is written either way."""
+@pytest.mark.parametrize("when", ["during_the_save", "before_the_step_ends"])
+def test_a_sigterm_after_ctrl_c_exits_as_preempted(when, tiny_recipe, tmp_path, monkeypatch):
+    """Ctrl-C, then the scheduler's SIGTERM (while the save runs, or before the step the Ctrl-C landed in
+    ends): the job exited as interrupted (130), not preempted (143), so a requeue-on-preemption policy
+    dropped it. The checkpoint is written either way."""
     import signal
 
     import ddp.train as train_module
@@ -220,9 +222,12 @@ def test_a_sigterm_during_the_save_after_ctrl_c_exits_as_preempted(tiny_recipe, 
 
     def loss(batch, generator=None):
         calls["n"] += 1
-        if calls["n"] == 3:
+        if calls["n"] == 3 and when == "during_the_save":
             monkeypatch.setattr(train_module, "save_checkpoint", save)
             raise KeyboardInterrupt  # Ctrl-C in the forward pass, before the update
+        if calls["n"] == 3:  # both recorded by the loop's handler, acted on at the step's end
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGTERM)
         return orig(batch, generator=generator)
 
     exp.model.loss = loss
@@ -234,7 +239,7 @@ def test_a_sigterm_during_the_save_after_ctrl_c_exits_as_preempted(tiny_recipe, 
         except KeyboardInterrupt as err:  # (not let through: it would stop pytest itself)
             raise AssertionError("the run exited as interrupted, not preempted") from err
     assert stopped.value.signum == signal.SIGTERM and isinstance(stopped.value.__cause__, KeyboardInterrupt)
-    assert load_checkpoint(tmp_path / "run/last.pt")["step"] == 2
+    assert load_checkpoint(tmp_path / "run/last.pt")["step"] == (2 if when == "during_the_save" else 3)
 
 
 def test_checkpoint_round_trip_gives_identical_outputs(tiny_recipe, tmp_path):

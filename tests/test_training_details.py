@@ -597,6 +597,10 @@ def test_cli_bench_names_each_model_s_own_denoising_steps(tmp_path, capsys):
     from ddp.schedulers.ddpm import DDPMConfig, DDPMScheduler
 
     assert DDPMScheduler(DDPMConfig(num_train_timesteps=50, num_inference_steps=None)).inference_steps == 50
+    # a flow (FlowPolicy's scheduler) and no world model: the header read a DDPM/DDIM-only attribute
+    assert main(["bench", recipe, "--repeats", "1", "--no-baseline", "--set", "policy.scheduler.name=consistency_flow",
+                 "--set", "world_model.enabled=false"]) == 0
+    assert capsys.readouterr().out.startswith("tiny: batch 1, policy 1 denoising steps")
 
 
 def test_bench_times_the_in_distribution_cycle(tmp_path, monkeypatch):

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -141,7 +142,12 @@ def _copy_on_write(leaf: torch.Tensor) -> torch.Tensor:
     filename = getattr(leaf, "filename", None)
     if filename is None or leaf.numel() == 0:
         return leaf
-    return torch.from_file(str(filename), shared=False, size=leaf.numel(), dtype=leaf.dtype).view(leaf.shape)
+    try:
+        return torch.from_file(str(filename), shared=False, size=leaf.numel(), dtype=leaf.dtype).view(leaf.shape)
+    except RuntimeError as err:  # a private writable mapping is charged its whole size (vm.overcommit_memory=2)
+        warnings.warn(f"{filename}: mapped shared, not copy-on-write ({str(err).splitlines()[0]}): an in-place "
+                      "edit of the loaded episodes would reach this file", RuntimeWarning, stacklevel=2)
+        return leaf
 
 
 def _check_leaf_files(steps: Path) -> None:

@@ -47,6 +47,13 @@ class Scheduler(abc.ABC):
 
     config: object
 
+    @property
+    def inference_steps(self) -> int | None:
+        """How many denoising steps :meth:`sample` takes: the config's ``num_inference_steps`` (subclasses
+        whose config may leave it to a default say what the default is); None where the config has none."""
+        steps = getattr(self.config, "num_inference_steps", None)
+        return None if steps is None else int(steps)
+
     @abc.abstractmethod
     def loss(self, model_fn: ModelFn, x0: torch.Tensor, *, generator: torch.Generator | None = None) -> torch.Tensor:
         """Scalar training loss (a mean squared error over all elements)."""
@@ -246,5 +253,5 @@ class DiscreteDiffusionScheduler(Scheduler):
 
     @property
     def inference_steps(self) -> int:
-        """How many denoising steps :meth:`sample` takes (the configured count, or the scheduler's default)."""
         return int(self._configured_inference_steps())
+

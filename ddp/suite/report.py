@@ -46,6 +46,8 @@ def average_interval(mean: float, episodes: list[int]) -> tuple[float, float]:
     over the effective count ``tasks**2 / sum(1 / episodes)`` (the pooled episodes where every task has
     the same number; the average then is the pooled rate). Two seeds that agree give a std of 0; this says
     how far 20 episodes a task still leave the average."""
+    if not episodes or min(episodes) <= 0:
+        return (float("nan"), float("nan"))
     n = len(episodes) ** 2 / sum(1 / e for e in episodes)
     return wilson(mean * n, n)
 
