@@ -217,6 +217,9 @@ def test_a_sigterm_after_ctrl_c_exits_as_preempted(when, tiny_recipe, tmp_path, 
         os.kill(os.getpid(), signal.SIGTERM)  # deferred until the write is done
         return real(path, payload)
 
+    # a test runner started in the background (nohup, CI) inherits SIGINT ignored, and training keeps an
+    # ignored signal ignored: give it Python's own handler, as an interactive shell does
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     exp = build(tiny_recipe)
     orig, calls = exp.model.loss, {"n": 0}
 
@@ -231,13 +234,16 @@ def test_a_sigterm_after_ctrl_c_exits_as_preempted(when, tiny_recipe, tmp_path, 
         return orig(batch, generator=generator)
 
     exp.model.loss = loss
-    with pytest.raises(Preempted) as stopped:
-        try:
-            exp.train(output_dir=tmp_path / "run", progress=False)
-        except Preempted:
-            raise
-        except KeyboardInterrupt as err:  # (not let through: it would stop pytest itself)
-            raise AssertionError("the run exited as interrupted, not preempted") from err
+    try:
+        with pytest.raises(Preempted) as stopped:
+            try:
+                exp.train(output_dir=tmp_path / "run", progress=False)
+            except Preempted:
+                raise
+            except KeyboardInterrupt as err:  # (not let through: it would stop pytest itself)
+                raise AssertionError("the run exited as interrupted, not preempted") from err
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert stopped.value.signum == signal.SIGTERM and isinstance(stopped.value.__cause__, KeyboardInterrupt)
     assert load_checkpoint(tmp_path / "run/last.pt")["step"] == (2 if when == "during_the_save" else 3)
 
