@@ -9,7 +9,6 @@ are validated against that plugin's own config dataclass by
 from __future__ import annotations
 
 import copy
-
 import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Literal

@@ -47,11 +47,15 @@ class Scheduler(abc.ABC):
 
     config: object
 
+    def _configured_inference_steps(self) -> int | None:
+        """The step count :meth:`sample` takes: the config's ``num_inference_steps`` (a subclass whose config
+        may leave it unset returns its default); None where the config has none."""
+        return getattr(self.config, "num_inference_steps", None)
+
     @property
     def inference_steps(self) -> int | None:
-        """How many denoising steps :meth:`sample` takes: the config's ``num_inference_steps`` (subclasses
-        whose config may leave it to a default say what the default is); None where the config has none."""
-        steps = getattr(self.config, "num_inference_steps", None)
+        """How many denoising steps :meth:`sample` takes (None where the config names none)."""
+        steps = self._configured_inference_steps()
         return None if steps is None else int(steps)
 
     @abc.abstractmethod
@@ -247,11 +251,3 @@ class DiscreteDiffusionScheduler(Scheduler):
             k_batch = torch.full((x.shape[0],), float(k), device=x.device, dtype=x.dtype)
             x = self.step(model_fn(x, k_batch), k, x, generator=generator).prev_sample
         return x
-
-    def _configured_inference_steps(self) -> int:
-        return self.config.num_inference_steps
-
-    @property
-    def inference_steps(self) -> int:
-        return int(self._configured_inference_steps())
-
