@@ -115,7 +115,11 @@ class ChunkedEnvFactory:
             registry.import_plugin_modules(list(self.plugin_modules))
         cfg = chunk_render_config(self.config, self.action_steps, self.obs_steps)
         base = Part(registry.get("env", self.plugin), cfg).build(seed=self.seed)  # checked against the env contract
-        return ChunkedEnv(base, self.action_steps, self.obs_steps, safe_lift=self.safe_lift, video=self.video)
+        try:
+            return ChunkedEnv(base, self.action_steps, self.obs_steps, safe_lift=self.safe_lift, video=self.video)
+        except BaseException:  # the base env holds a simulator, a renderer or a robot connection
+            base.close()
+            raise
 
 
 def env_factory(exp, seed: int, overrides: dict | None = None, video: VideoSettings | None = None) -> ChunkedEnvFactory:

@@ -177,6 +177,8 @@ class DDPController(KeyedModule):
         if on_nonfinite == "hold" and hold is None:  # e.g. a Franka gripper held at 0 would read as "open"
             raise ValueError("on_nonfinite='hold' needs hold=, how the env holds still (its action_hold, e.g. "
                              "ddp.safety.DELTAS for an env whose every action dim is a delta)")
+        if hold is not None:
+            hold.absolute_dims(model.action_dim)  # a spec for another action space: refused now, not at a fault
         bad = first_nonfinite([*model.named_parameters(), *model.named_buffers()])
         if bad is not None:
             raise NonFiniteError(f"the model's '{bad}' holds NaN or inf: it cannot drive a robot")
@@ -325,6 +327,16 @@ class DDPController(KeyedModule):
         s.tracked[target] = True
         s.followed[target] = offsets[target]
         s.last_track = target
+
+    def _defer_track(self, s: EnvState, b: int, ee_shift: torch.Tensor) -> None:
+        """Take back the a^track :meth:`_track` added this cycle (at most one: an object is tracked once), for
+        a held chunk: the arm does not move on a cycle whose observation or actions are not trusted."""
+        if s.last_track is None:
+            return
+        target, s.last_track = s.last_track, None
+        ee_shift[b] -= s.followed[target]
+        s.tracked[target] = False
+        s.followed[target] = torch.zeros_like(s.followed[target])
 
     def _read_back_shifts(self, td) -> None:
         """The env's ``ee_shift_applied`` (ChunkedEnv: the shift it executed, clipped to its workspace) for the
@@ -658,9 +670,10 @@ class DDPController(KeyedModule):
             else:
                 self.states[b].last_action = actions[b, -1].clone()
                 continue
-            # the chunk holds still; a tracking / recovery shift (finite: from cleaned offsets) still runs,
-            # since the per-environment state above already counts it as done
+            # the chunk holds still, and so does a tracking shift decided this cycle: it waits for a chunk that
+            # acts (tracked again then, from that cycle's offsets); a recovery due at the subtask's end runs
             actions[b], held[b] = self._hold_or_raise(b, chunk_index[b], why), True
+            self._defer_track(self.states[b], b, ee_shift)
         if self.model.has_world_model:
             # O_pred for the next cycle is W_phi(O_curr, a_t): in ID the forecast D_R-I compares
             # against, in OOD the autoregressive imagination the policy acts from (made lazily). A held

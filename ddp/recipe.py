@@ -200,11 +200,12 @@ def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
     starts that section afresh, as a recipe merge does: the options the recipe gave the old part are
     dropped (they belong to it), the ones other ``--set``s give the section are kept, whatever their order."""
     out = copy.deepcopy(data)
-    written: dict[tuple, set] = {}  # section path -> the options --set wrote into it
+    written: set[tuple] = set()  # the full key paths --set wrote
+    switched_on: dict[tuple, str] = {}  # a section the recipe sets to null -> the first --set writing into it
     for text in overrides:
         parts, value = parse_override(text)
         section = tuple(parts[:-1])
-        written.setdefault(section, set()).add(parts[-1])
+        written.add(tuple(parts))
         node = out
         for i, part in enumerate(parts):
             last = i == len(parts) - 1
@@ -221,8 +222,7 @@ def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
                                   source="--set", key=_dotted(parts))
             if last:
                 if part == "name" and section and isinstance(node.get("name"), str) and node["name"] != value:
-                    for option in [k for k in node if k != "name" and k not in written[section]]:
-                        del node[option]  # the old part's options (a merge drops them too)
+                    _keep_written(node, section, written)  # the old part's options go (a merge drops them too)
                 node[part] = value
             else:
                 child = node[part] if isinstance(part, int) else node.get(part)
@@ -232,9 +232,39 @@ def apply_overrides(data: dict, overrides: Iterable[str]) -> dict:
                                       "set the whole list",
                                       source="--set", key=_dotted(parts))
                 if child is None:
+                    if isinstance(part, str) and part in node:  # the recipe turns this section off (null)
+                        switched_on.setdefault(tuple(parts[:i + 1]), _dotted(parts))
                     child = node[part] = {}
                 node = child
+    _check_switched_on(out, switched_on)
     return out
+
+
+def _keep_written(node: dict, path: tuple, written: set[tuple]) -> None:
+    """Drop from the section ``node`` (at ``path``) every option that no ``--set`` wrote, at any depth."""
+    for key in [k for k in node if k != "name"]:
+        below = (*path, key)
+        if below in written:
+            continue
+        if isinstance(node[key], dict) and any(w[:len(below)] == below for w in written):
+            _keep_written(node[key], below, written)
+        else:
+            del node[key]
+
+
+def _check_switched_on(data: dict, switched_on: dict[tuple, str]) -> None:
+    """A plugin section the recipe turns off (``tracker: null``) gets options from --set only with a plugin
+    name: it does not silently become the default plugin."""
+    from ddp.schema import PART_SECTIONS  # (schema imports nothing from here at module level)
+
+    for path, key in switched_on.items():
+        section = _dotted(list(path))
+        node = data
+        for part in path:
+            node = node.get(part) if isinstance(node, dict) else None
+        if section in PART_SECTIONS and isinstance(node, dict) and "name" not in node:
+            raise RecipeError(f"cannot set '{key}': the recipe sets '{section}' to null (off); name the plugin "
+                              f"to turn it on, e.g. --set {section}.name=...", source="--set", key=key)
 
 
 def load_recipe(path: str | os.PathLike | dict, overrides: Iterable[str] = ()) -> tuple[dict, str]:

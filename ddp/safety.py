@@ -47,7 +47,13 @@ class HoldSpec:
     reset: dict[int, float] = field(default_factory=dict)
 
     def absolute_dims(self, action_dim: int) -> list[int]:
-        return list(range(action_dim)) if self.absolute == "all" else [d for d in self.absolute if d < action_dim]
+        if self.absolute == "all":
+            return list(range(action_dim))
+        outside = [d for d in self.absolute if not 0 <= d < action_dim]
+        if outside:  # a spec written for another action space would hold that command at 0
+            raise ValueError(f"HoldSpec: absolute action dimension {outside[0]} is outside the {action_dim} "
+                             f"dimensions of the action")
+        return list(self.absolute)
 
     def action(self, last: torch.Tensor | None, action_dim: int, steps: int) -> torch.Tensor | None:
         """The N-step hold chunk [steps, action_dim], or None if an absolute dim has no value yet."""
@@ -125,8 +131,9 @@ def check_observation(td, spec: ObservationSpec, keys: dict, dtype: torch.dtype 
     chunk = _get(td, keys["chunk_index"], "chunk_index")
     M = spec.obs_steps
     for name, x, event in (("point_cloud", pc, "[B, M, P, C]"), ("agent_pos", pos, "[B, M, D]")):
-        if not (x.is_floating_point() or x.dtype in (torch.int32, torch.int64, torch.uint8)) or x.is_complex():
-            raise ObservationError(f"observation '{name}' must be a float tensor; got {x.dtype}")
+        if x.dtype == torch.bool or x.is_complex() or x.is_quantized:  # every float or integer dtype is cast
+            raise ObservationError(f"observation '{name}' must be a float or integer tensor (integers are cast); "
+                                   f"got {x.dtype}")
         if x.dim() != len(event.split(",")) or x.shape[0] != B:
             raise ObservationError(f"observation '{name}' must be {event} with B = {B}; got shape {tuple(x.shape)}")
         if x.shape[1] < M:

@@ -135,6 +135,15 @@ def test_damaged_episode_directories_are_one_line_errors(tmp_path):
     with pytest.raises(DDPError, match=rf"action.memmap: holds {whole // 2} bytes where its shape \[22, .*needs {whole}"):
         Episodes.load(d)
     assert action.stat().st_size == whole // 2  # refused before mapping: the file is left as it was
+    d = fresh("steps_json")  # the data's own layout file: a bare JSONDecodeError naming no file
+    (d / "steps" / "meta.json").write_text("{not json")
+    with pytest.raises(DDPError, match=r"steps/meta.json: not valid JSON") as err:
+        Episodes.load(d)
+    assert "\n" not in str(err.value)
+    d = fresh("steps_missing")  # a FileNotFoundError
+    (d / "steps" / "meta.json").unlink()
+    with pytest.raises(DDPError, match=r"steps/meta.json: missing"):
+        Episodes.load(d)
 
 
 def test_sequence_dataset_batches_match_items():

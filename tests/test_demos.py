@@ -196,6 +196,13 @@ def test_episodes_dir_round_trip(tmp_path):
         _source(recipe).load()
     with pytest.raises(RecipeError, match="data.path: missing required option"):
         _source({"name": "x", "data": {"name": "episodes_dir"}})
+    flat = demos.steps.clone()  # a 1-D action [T] read as action_dim T
+    flat["action"] = flat["action"][:, 0]
+    Episodes(flat, demos.episode_ends).save(tmp_path / "flat")
+    recipe = {"name": "x", "task": {"num_points": 32, "action_dim": demos.num_steps},
+              "data": {"name": "episodes_dir", "path": str(tmp_path / "flat")}}  # fmt: skip
+    with pytest.raises(DDPError, match=r"action has shape \(\d+,\); expected 2 dimensions"):
+        _source(recipe).load()
 
 
 # -------------------------------------------------------------- MetaWorld

@@ -18,7 +18,7 @@ from ddp.schema import validate
 
 zarr = pytest.importorskip("zarr")
 
-from ddp.data.sources.dp3_zarr import export_dp3_zarr, read_dp3_zarr  # noqa: E402
+from ddp.data.sources.dp3_zarr import DEFAULT_KEYS, export_dp3_zarr, read_dp3_zarr  # noqa: E402
 
 
 def _source(data: dict, **recipe):
@@ -199,3 +199,66 @@ def test_overwriting_keeps_the_earlier_store_until_the_new_one_is_in_place(demos
     export_dp3_zarr(Episodes(demos.steps[:10], torch.tensor([4, 10])), path, overwrite=True)
     assert zarr.open(str(path), mode="r")["data/action"].shape[0] == 10
     assert sorted(p.name for p in tmp_path.iterdir()) == ["store.zarr"]
+
+
+def test_missing_chunks_are_refused_not_read_as_zeros(demos, tmp_path):
+    """zarr reads a chunk file that is not there as the fill value: a partly copied store imported with zero
+    actions, silently. A required array with chunks missing is refused; an extra key warns."""
+    path = export_dp3_zarr(demos, tmp_path / "partial.zarr", chunk_steps=4)
+    for chunk in (path / "data" / "action").iterdir():
+        if not chunk.name.startswith("."):
+            chunk.unlink()
+            break
+    with pytest.raises(DDPError, match=r"partial.zarr: data/action: 1 of \d+ chunks are not stored"):
+        read_dp3_zarr(path)
+    path = export_dp3_zarr(demos, tmp_path / "extra.zarr", chunk_steps=4)
+    next(c for c in (path / "data" / "full_state").iterdir() if not c.name.startswith(".")).unlink()
+    with pytest.warns(RuntimeWarning, match=r"data/full_state: 1 of \d+ chunks are not stored"):
+        read_dp3_zarr(path, keys={**DEFAULT_KEYS, "full_state": "data/full_state"})
+
+
+def test_zero_chunks_are_written_and_read_back(demos, tmp_path):
+    """zarr 3 leaves a chunk of only the fill value unwritten by default: the export writes every chunk, so its
+    own stores (a still stretch of zero actions) import again."""
+    steps = demos.steps.clone()
+    steps["action"][:8] = 0.0
+    path = export_dp3_zarr(Episodes(steps, demos.episode_ends), tmp_path / "still.zarr", chunk_steps=4)
+    back = read_dp3_zarr(path)
+    assert torch.equal(back.steps["action"], steps["action"])
+
+
+def test_unsafe_codecs_and_damaged_metadata_are_refused_unread(demos, tmp_path):
+    """A numeric dtype with a pickle filter or compressor (zarr 2 unpickles the chunk whatever the dtype) is
+    refused by name before zarr reads it; unreadable metadata and float episode ends are one-line errors."""
+    for field, codec in (("filters", [{"id": "pickle"}]), ("compressor", {"id": "pickle", "protocol": 5})):
+        path = export_dp3_zarr(demos, tmp_path / f"{field}.zarr")
+        meta_file = path / "data" / "action" / ".zarray"
+        meta = json.loads(meta_file.read_text())
+        meta[field] = codec
+        meta_file.write_text(json.dumps(meta))
+        with pytest.raises(DDPError, match=r"data/action is stored with codec 'pickle'; only numeric codecs"):
+            read_dp3_zarr(path)
+    path = export_dp3_zarr(demos, tmp_path / "garbled.zarr")
+    (path / "data" / "state" / ".zarray").write_text("{not json")
+    with pytest.raises(DDPError, match=r"data/state: unreadable array metadata .zarray") as err:
+        read_dp3_zarr(path)
+    assert "\n" not in str(err.value)
+    path = export_dp3_zarr(demos, tmp_path / "float_ends.zarr")
+    root = zarr.open(str(path), mode="r+")
+    ends = root["meta/episode_ends"][:]
+    del root["meta/episode_ends"]
+    root.create_array("meta/episode_ends", shape=ends.shape, dtype="<f8")[...] = ends.astype(np.float64)
+    with pytest.raises(DDPError, match=r"meta/episode_ends holds float64 of shape \(3,\), expected a 1-D integer"):
+        read_dp3_zarr(path)
+
+
+def test_overwrite_replaces_only_a_store(demos, tmp_path):
+    """export_dp3_zarr(..., "data", overwrite=True) wiped any folder; it now replaces a store or an empty folder."""
+    precious = tmp_path / "precious"
+    (precious / "sub").mkdir(parents=True)
+    (precious / "sub" / "notes.txt").write_text("keep")
+    with pytest.raises(DDPError, match=r"precious: exists and is not a zarr store"):
+        export_dp3_zarr(demos, precious, overwrite=True)
+    assert (precious / "sub" / "notes.txt").read_text() == "keep"
+    (tmp_path / "empty").mkdir()
+    assert read_dp3_zarr(export_dp3_zarr(demos, tmp_path / "empty", overwrite=True)).num_episodes == 3

@@ -24,6 +24,7 @@ import pytest
 from ddp.envs.franka.cameras import CalibrationError, load_calibration, make_camera
 from ddp.envs.franka.env import FrankaEnvConfig
 from ddp.envs.franka.real import RealBackendConfig, limit_target, quat_angle, quat_from_rotvec
+from ddp.safety import NonFiniteError
 from ddp.envs.franka.tasks.stack import GREEN_HALF, PINK_HALF
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -217,6 +218,7 @@ def test_config_validation_and_camera_errors():
     ("home_joints", (0.0, float("nan"), 0.0, -2.5, 0.0, 2.1, 0.78), r"home_joints\[1\]"),
     ("workspace_high", (0.7, 0.45, float("inf")), "workspace_low/high must be 3 finite numbers"),
     ("reset_lift", -0.1, "reset_lift must be a finite number >= 0"),
+    ("home_position", (float("nan"), 0.0, 0.3), "home_position must be 3 numbers"),  # every reset went there
 ])
 def test_real_backend_settings_that_would_switch_a_limit_off_are_refused(key, value, message):
     with pytest.raises(ValueError, match=f"env.real.{message}"):
@@ -305,6 +307,11 @@ def test_a_real_reset_lifts_first_and_waits_for_the_operator_before_the_gripper_
     quiet.reset()
     quiet.reset()
     assert [e[0] for e in franky.events] == ["gripper", "joint", "gripper", "joint"]
+    franky.events.clear()  # a NaN pose reading: the lift's target max(nan, z) would be NaN, sent unchecked
+    backend.robot.pose = (np.array([0.5, 0.0, float("nan")]), backend.robot.pose[1])
+    with pytest.raises(NonFiniteError, match=r"franky backend \(reset lift\): refused a non-finite measured end"):
+        backend.reset()
+    assert franky.events == []  # nothing moved
     monkeypatch.setattr("builtins.input", lambda prompt: (_ for _ in ()).throw(EOFError()))
     with pytest.raises(RuntimeError, match="no terminal to read Enter from; set env.real.operator_reset=false"):
         real.FrankyBackend.confirm("go")

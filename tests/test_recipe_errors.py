@@ -379,3 +379,29 @@ def test_setting_a_part_s_name_drops_the_old_part_s_options(good):
         assert scheduler["name"] == "ddpm" and scheduler["num_inference_steps"] == 7, order
     same = build(p, ["policy.scheduler.name=ddim"]).resolved["policy"]["scheduler"]
     assert same["timestep_spacing"] == "trailing" and same["num_inference_steps"] == 2  # not a swap
+
+
+def test_setting_an_option_of_a_section_the_recipe_turns_off_asks_for_a_plugin(good):
+    """`controller.tracker: null` with --set controller.tracker.<option> silently became the default (oracle)
+    tracker; now the error asks for a name, and naming one (in either order) turns it on."""
+    p = good.parent / "no_tracker.yaml"
+    p.write_text("base: good.yaml\ncontroller:\n  tracker: null\n")
+    msg = error_of(p, ["controller.tracker.refine=rigid"])
+    assert "controller.tracker.refine" in msg and "controller.tracker.name" in msg and "null" in msg, msg
+    for order in (["controller.tracker.name=pointcloud", "controller.tracker.refine=rigid"],
+                  ["controller.tracker.refine=rigid", "controller.tracker.name=pointcloud"]):
+        tracker = build(p, order).resolved["controller"]["tracker"]
+        assert tracker["name"] == "pointcloud" and tracker["refine"] == "rigid", order
+    assert build(p).resolved["controller"]["tracker"] is None
+
+
+def test_setting_a_part_s_name_keeps_nested_options_other_sets_wrote():
+    """A --set one level inside a part's section survives a later --set of the part's name; the old part's own
+    nested options do not."""
+    from ddp.recipe import apply_overrides
+
+    data = {"policy": {"denoiser": {"name": "a", "width": 3, "blocks": {"depth": 1, "kind": "res"}}}}
+    out = apply_overrides(data, ["policy.denoiser.blocks.depth=2", "policy.denoiser.name=b"])
+    assert out["policy"]["denoiser"] == {"name": "b", "blocks": {"depth": 2}}
+    out = apply_overrides(data, ["policy.denoiser.name=b", "policy.denoiser.blocks.depth=2"])
+    assert out["policy"]["denoiser"] == {"name": "b", "blocks": {"depth": 2}}

@@ -44,7 +44,7 @@ def observations(exp, chunk: int = 0, batch: int = 1) -> TensorDict:
 def poison(td, key, value=float("nan"), env=None):
     x = td[key]
     if env is None:
-        x[..., 0, -1, 0] = value  # one coordinate of one point (or one feature) of the latest frame
+        x[..., 0, -1, 0] = value  # one coordinate of the last point of the oldest frame
     else:
         x[env, -1].view(-1)[0] = value
     return td
@@ -145,6 +145,9 @@ def test_a_controller_built_in_code_holds_only_as_told(exp):
     with pytest.raises(ValueError, match="on_nonfinite='hold' needs hold="):
         DDPController(exp.model, detector=det, on_nonfinite="hold")
     DDPController(exp.model, detector=det, on_nonfinite="hold", hold=HoldSpec(absolute=(3,), reset={3: -1.0}))
+    # a spec for another action space (a 7-d arm's gripper dim 6 on this 4-d one) held that command at 0
+    with pytest.raises(ValueError, match="HoldSpec: absolute action dimension 6 is outside the 4 dimensions"):
+        DDPController(exp.model, detector=det, on_nonfinite="hold", hold=HoldSpec(absolute=(6,), reset={6: -1.0}))
 
 
 def test_hold_needs_an_env_that_declares_it(tiny_recipe):
@@ -169,13 +172,14 @@ def test_hold_needs_an_env_that_declares_it(tiny_recipe):
         (lambda td: td.set("point_cloud", td["point_cloud"][-1:]), "holds 1 step"),
         (lambda td: td.set("agent_pos", td["agent_pos"][-1:]), "holds 1 step"),
         (lambda td: td.set("point_cloud", td["point_cloud"][..., :2]), "2 channels per point"),
-        (lambda td: td.set("point_cloud", td["point_cloud"].to(torch.complex64)), "must be a float tensor"),
+        (lambda td: td.set("point_cloud", td["point_cloud"].to(torch.complex64)), "must be a float or integer tensor"),
+        (lambda td: td.set("agent_pos", td["agent_pos"] > 0), "'agent_pos' must be a float or integer tensor"),
         (lambda td: td.set("point_cloud", td["point_cloud"][0]), "must be .B, M, P, C."),
         (lambda td: td.set("chunk_index", torch.tensor([0, 1])), "one index per environment"),
         (lambda td: td.unsqueeze(0)[:0], "batch is empty"),
     ],
     ids=["no-points", "agent-pos-size", "no-chunk-index", "no-point-cloud", "one-pc-step", "one-pos-step",
-         "two-channels", "complex", "pc-rank", "chunk-shape", "empty-batch"],
+         "two-channels", "complex", "bool", "pc-rank", "chunk-shape", "empty-batch"],
 )
 def test_bad_observations_give_one_line(exp, mutate, match):
     ctrl = exp.make_controller()
@@ -192,6 +196,11 @@ def test_float64_clouds_work_and_odd_shapes_warn_once(exp):
     td = observations(exp)
     td["point_cloud"], td["agent_pos"] = td["point_cloud"].double(), td["agent_pos"].double()
     assert torch.allclose(ctrl(td)["action"], ref, atol=1e-4)
+    for dtype in (torch.int8, torch.int16, torch.int32, torch.uint8):  # integers are cast (int8 / int16 were refused)
+        ctrl.reset()
+        td = observations(exp)
+        td["point_cloud"] = td["point_cloud"].to(dtype)
+        assert torch.isfinite(ctrl(td)["action"]).all()
     td = observations(exp)
     td["point_cloud"] = torch.cat([td["point_cloud"], td["point_cloud"][:, :5]], 1)  # 69 points, 4 channels
     td["point_cloud"] = torch.cat([td["point_cloud"], torch.zeros(*td["point_cloud"].shape[:-1], 1)], -1)
@@ -238,8 +247,35 @@ def test_chunked_env_reset_plays_the_seed_it_is_given_and_refuses_other_chunks()
     for steps in (3, 16):
         td = env.reset()
         td.set("action", torch.zeros(steps, 4))
-        with pytest.raises(ValueError, match=f"an action chunk holds 8 actions; got shape \\[{steps}, 4\\]"):
+        with pytest.raises(ValueError, match=f"an action chunk is \\[8, 4\\] .*; got shape \\[{steps}, 4\\]"):
             env.step(td)
+
+
+def test_chunked_env_checks_the_whole_chunk_before_the_shift_and_refuses_an_ended_episode():
+    """Only the chunk's length was checked before the end-effector shift ran: actions of the wrong width moved
+    the end-effector, then were refused with no step run; a 1-D action was a bare IndexError; a step after
+    done ran the shift and an action on the ended episode (the base env has no done guard)."""
+    cfg = SyntheticReachEnvConfig(num_points=32, max_episode_steps=16)
+    base = SyntheticReachEnv(cfg, seed=0)
+    env = ChunkedEnv(base, action_steps=8, obs_steps=2)
+    shift = torch.tensor([0.05, 0.0, 0.0])
+    for action in (torch.zeros(8, 3), torch.zeros(8)):
+        env.reset()
+        with pytest.raises(ValueError, match=r"an action chunk is \[8, 4\]"):
+            env.step(TensorDict({"action": action, "ee_shift": shift}, []))
+        assert np.array_equal(base.ee_offset, np.zeros(3)) and base._steps == 0  # nothing moved
+    with pytest.raises(ValueError, match=r"ee_shift is 3 numbers"):
+        env.step(TensorDict({"action": torch.zeros(8, 4), "ee_shift": torch.zeros(2)}, []))
+    td = env.reset()
+    for _ in range(2):
+        td = env.step(TensorDict({"action": torch.zeros(8, 4)}, []))["next"]
+    assert bool(td["done"]) and base._steps == 16
+    with pytest.raises(RuntimeError, match=r"the episode has ended \(done\); reset\(\) before the next step"):
+        env.step(TensorDict({"action": torch.zeros(8, 4), "ee_shift": shift}, []))
+    assert base._steps == 16 and np.array_equal(base.ee_offset, np.zeros(3))
+    env.reset()
+    env.step(TensorDict({"action": torch.zeros(8, 4)}, []))  # a reset clears it
+    assert base._steps == 8
 
 
 def test_env_schedules_the_episode_never_observes_and_negative_seeds_are_refused():
@@ -263,3 +299,43 @@ def test_the_base_render_schedule_works_without_obs_every():
                                                     gripper_points=16), seed=0)
     assert not hasattr(env.config, "obs_every")
     assert all(PointCloudEnv._render_due(env, t) for t in range(10))
+
+
+def test_a_held_chunk_does_not_move_the_arm_by_a_tracking_shift(tiny_recipe):
+    """A non-finite observation forces OOD and the tracker may see the displaced target then: the held chunk
+    still sent its a^track (the arm moved 20 cm on a cycle the controller treated as a sensor fault). The shift
+    now waits for the next cycle with a finite observation, and the recovery still undoes it."""
+    from conftest import DELTA, displaced_exp
+
+    exp = displaced_exp(tiny_recipe, on_nonfinite="hold")
+    ctrl = exp.make_controller(imagine=False)
+    env = make_chunked_env(exp, seed=0)
+    ctrl.reset()
+    td, held, shifts, offsets = env.reset(), [], [], []
+    for cycle in range(6):
+        if cycle == 2:  # the first observation showing the move
+            td = poison(td, "point_cloud")
+        out = ctrl(td)
+        held.append(bool(out["ddp", "held"]))
+        shifts.append(out["ee_shift"].clone())
+        td = env.step(out.select("action", "ee_shift"))["next"]
+        offsets.append(td["privileged", "ee_offset"].clone())
+    env.close()
+    assert held == [False, False, True, False, False, False]
+    assert torch.equal(shifts[2], torch.zeros(3)) and torch.equal(offsets[2], torch.zeros(3))  # held: no motion
+    assert torch.allclose(shifts[3], torch.tensor(DELTA))  # tracked on the next finite cycle
+    assert torch.allclose(shifts[4], -torch.tensor(DELTA))  # and undone at the subtask's end
+    assert torch.allclose(offsets[4], torch.zeros(3), atol=1e-6)
+
+
+def test_an_env_factory_closes_the_base_env_when_the_chunked_env_is_refused(monkeypatch):
+    """ChunkedEnv refusing its settings left the base env (a simulator, a robot connection) open."""
+    from ddp.eval_runner import ChunkedEnvFactory
+
+    closed = []
+    monkeypatch.setattr(SyntheticReachEnv, "close", lambda self, **kw: closed.append(self))
+    factory = ChunkedEnvFactory(plugin="synthetic_reach", config=SyntheticReachEnvConfig(num_points=32),
+                                action_steps=1, obs_steps=2)  # fmt: skip
+    with pytest.raises(ValueError, match="action_steps"):
+        factory()
+    assert len(closed) == 1

@@ -158,6 +158,7 @@ def generate_demos(
             if states_per_draw is not None and attempts // states_per_draw != block:
                 block = attempts // states_per_draw  # every state of the last draw was tried: the next draw
                 env.close()
+                env = None  # (a failing make_block_env leaves nothing to close twice)
                 env = make_block_env(block)
             arrays, ok, first = _rollout(env, expert, ep_seed, max_steps, stop_after_success, keys)
             attempts += 1
@@ -176,7 +177,8 @@ def generate_demos(
             bar.set_postfix(attempts=attempts, success=f"{successes / attempts:.0%}")
     finally:
         bar.close()
-        env.close()
+        if env is not None:
+            env.close()
     demos = Episodes.from_list(kept)
     seconds = time.perf_counter() - start
     lengths = [td.batch_size[0] for td in kept]

@@ -155,12 +155,15 @@ def _check_leaf_files(steps: Path) -> None:
     meta.json need: a file cut short (an interrupted copy, a full disk) is a one-line error, where
     mapping it would read zeros past its end and grow the file to fit."""
     meta_file = steps / "meta.json"
+    if not meta_file.is_file():
+        raise DDPError(f"{meta_file}: missing (the episode data's layout): a damaged or partly copied episode "
+                       "directory")
     try:
         meta = json.loads(meta_file.read_text())
-    except (OSError, ValueError, UnicodeDecodeError):
-        return  # tensordict's own loader reports a missing or damaged meta.json
+    except (OSError, ValueError, UnicodeDecodeError) as err:
+        raise DDPError(f"{meta_file}: not valid JSON ({str(err).splitlines()[0] if str(err) else err!r})") from None
     if not isinstance(meta, dict):
-        return
+        raise DDPError(f"{meta_file}: holds a {type(meta).__name__}, expected the episode data's layout (a mapping)")
     for key, leaf in meta.items():
         if isinstance(leaf, dict) and "shape" in leaf and isinstance(leaf.get("dtype"), str):
             file = steps / f"{key}.memmap"

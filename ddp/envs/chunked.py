@@ -134,6 +134,7 @@ class ChunkedEnv(EnvBase):
         self._chunk = 0
         self._success = False
         self._failed = False
+        self._ended = False
         self._label: ChunkLabel | None = None
 
     def _set_seed(self, seed: int | None) -> None:
@@ -155,7 +156,7 @@ class ChunkedEnv(EnvBase):
         # reset(seed=s) plays episode s, as the base env's does (it was dropped: another episode, mislabelled)
         first = self._chunks.reset() if seed is None else self._chunks.reset(seed=seed)
         self._chunk = 0
-        self._success = self._failed = False
+        self._success = self._failed = self._ended = False
         if self.recorder is not None:
             self.recorder.start_episode(int(self.base.episode_seed) if self._tells_seed else None)
             self._record(None)
@@ -177,12 +178,17 @@ class ChunkedEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shift = tensordict.get("ee_shift", None)
         # the whole chunk is checked before any of it runs: no half-executed chunk ends in a refusal
+        if self._ended:  # the base env has no done guard: the shift and an action would run on the ended episode
+            raise RuntimeError("chunked env: the episode has ended (done); reset() before the next step")
         action = tensordict.get("action")
-        if action.shape[-2] != self.action_steps:  # another length runs that many steps as one chunk
-            raise ValueError(f"chunked env: an action chunk holds {self.action_steps} actions; got shape "
-                             f"{list(action.shape)}")
+        wanted = (self.action_steps, *self.base.action_spec.shape)
+        if tuple(action.shape[-len(wanted):]) != wanted:  # another length runs that many steps as one chunk
+            raise ValueError(f"chunked env: an action chunk is {list(wanted)} ({self.action_steps} actions of "
+                             f"{list(self.base.action_spec.shape)}); got shape {list(action.shape)}")
         require_finite("action chunk", action, "chunked env")
         if shift is not None:
+            if shift.numel() != 3:
+                raise ValueError(f"chunked env: ee_shift is 3 numbers (x, y, z); got shape {list(shift.shape)}")
             require_finite("end-effector shift", shift, "chunked env")
         applied = None
         if shift is not None and bool(shift.abs().max() > 0):
@@ -198,6 +204,7 @@ class ChunkedEnv(EnvBase):
         out.set("reward", reward)
         for key in ("done", "terminated", "truncated"):
             out.set(key, last.get(key))
+        self._ended = bool(last.get("done").any())
         if self.recorder is not None and bool(last.get("done").any()):
             self.recorder.finish()
         return out

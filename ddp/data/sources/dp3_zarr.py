@@ -18,7 +18,9 @@ Needs the ``zarr`` package (2.x or 3.x; both read and write the v2 format).
 
 from __future__ import annotations
 
+import json
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -119,7 +121,8 @@ def read_dp3_zarr(
     if not hasattr(root, "keys"):
         raise DDPError(f"{path}: is a single zarr array, expected a DP3 group with data/ and meta/")
 
-    def array(name: str):
+    def array(name: str, *, required: bool = True):
+        _check_codecs(path, name)  # before zarr parses the metadata: a pickle codec would run code on reading
         try:
             arr = root[name]
         except KeyError:
@@ -127,21 +130,35 @@ def read_dp3_zarr(
             raise DDPError(
                 f"{path}: no array '{name}' in the zarr store (found: {', '.join(found) or 'nothing'})"
             ) from None
+        except (ValueError, TypeError) as err:
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            raise DDPError(f"{path}: {name}: unreadable array metadata ({first})") from None
         try:
             kind = np.dtype(arr.dtype).kind
         except TypeError:
             kind = "O"
         if kind not in "biuf":  # checked before reading: zarr 2 decodes an object array with pickle
             raise DDPError(f"{path}: {name} has dtype {arr.dtype}; only numeric arrays are read")
+        stored, chunks = arr.nchunks_initialized, arr.nchunks
+        if stored < chunks:  # zarr reads a chunk file that is not there as the fill value, without a word
+            message = (f"{path}: {name}: {chunks - stored} of {chunks} chunks are not stored (a damaged or partly "
+                       f"copied store, or chunks of only the fill value {arr.fill_value} left unwritten)")
+            if required:  # a stretch of zero clouds, states or actions is no demonstration
+                raise DDPError(message)
+            warnings.warn(message + f": they read as {arr.fill_value}", RuntimeWarning, stacklevel=3)
         return arr
 
-    ends = np.asarray(array(EPISODE_ENDS)[:], dtype=np.int64).reshape(-1)
+    ends_array = array(EPISODE_ENDS)
+    if np.dtype(ends_array.dtype).kind not in "iu" or len(ends_array.shape) != 1:
+        raise DDPError(f"{path}: {EPISODE_ENDS} holds {ends_array.dtype} of shape {tuple(ends_array.shape)}, "
+                       "expected a 1-D integer array of episode ends")
+    ends = np.asarray(ends_array[:], dtype=np.int64)
     if ends.size == 0:
         raise DDPError(f"{path}: {EPISODE_ENDS} is empty (no episodes)")
     total = int(ends[-1])
     out: dict[str, torch.Tensor] = {}
     for name, zkey in keys.items():
-        arr = array(zkey)
+        arr = array(zkey, required=name in REQUIRED)
         if arr.shape[0] != total:
             raise DDPError(f"{path}: {zkey} has {arr.shape[0]} steps but {EPISODE_ENDS} ends at {total}")
         if name == "point_cloud":
@@ -178,6 +195,56 @@ def _read_cloud(arr, path, zkey, channels, num_points, method, seed) -> np.ndarr
     return result
 
 
+#: compressors and filters an array may name (zarr 2 ``id`` / zarr 3 codec ``name``, ``numcodecs.`` prefix
+#: dropped): numeric codecs only; any other (``pickle``, ``json2``, ``msgpack2``, ...) is refused unread
+_SAFE_CODECS = frozenset({
+    "blosc", "zstd", "lz4", "zlib", "gzip", "bz2", "lzma", "delta", "fixedscaleoffset", "shuffle", "quantize",
+    "bitround", "packbits", "crc32", "crc32c", "adler32", "fletcher32", "bytes", "endian", "transpose",
+    "sharding_indexed",
+})
+
+
+def _check_codecs(path: Path, name: str) -> None:
+    """Refuse an array whose stored metadata names a codec outside :data:`_SAFE_CODECS`, read from the
+    metadata file itself (zarr 2 applies ``numcodecs.Pickle`` to any dtype, ``<f4`` too)."""
+    folder = path.joinpath(*name.split("/"))
+    ids: list = []
+    if (folder / ".zarray").is_file():  # zarr format 2
+        meta = _json(folder / ".zarray", path, name)
+        for codec in [meta.get("compressor"), *(meta.get("filters") or [])]:
+            if codec is not None:
+                ids.append(codec.get("id") if isinstance(codec, dict) else codec)
+    elif (folder / "zarr.json").is_file():  # zarr format 3 (a sharding codec holds codecs of its own)
+        def walk(codecs):
+            for codec in codecs or []:
+                if not isinstance(codec, dict):
+                    ids.append(codec)
+                    continue
+                ids.append(codec.get("name"))
+                config = codec.get("configuration")
+                if isinstance(config, dict):
+                    walk(config.get("codecs"))
+                    walk(config.get("index_codecs"))
+
+        walk(_json(folder / "zarr.json", path, name).get("codecs"))
+    else:
+        return  # no array of that name: the lookup names what the store holds
+    unsafe = [c for c in ids if not (isinstance(c, str) and c.removeprefix("numcodecs.") in _SAFE_CODECS)]
+    if unsafe:
+        raise DDPError(f"{path}: {name} is stored with codec {unsafe[0]!r}; only numeric codecs are read "
+                       f"(refused unread: some codecs run code when decoding)")
+
+
+def _json(file: Path, path: Path, name: str) -> dict:
+    try:
+        meta = json.loads(file.read_text())
+    except (OSError, ValueError, UnicodeDecodeError) as err:
+        raise DDPError(f"{path}: {name}: unreadable array metadata {file.name} ({err})") from None
+    if not isinstance(meta, dict):
+        raise DDPError(f"{path}: {name}: {file.name} holds a {type(meta).__name__}, expected a mapping")
+    return meta
+
+
 def _list_arrays(group, prefix: str = "") -> list[str]:
     names = []
     for name in group.keys():
@@ -198,7 +265,8 @@ def export_dp3_zarr(
     chunk_steps: int = 100,
     overwrite: bool = False,
 ) -> Path:
-    """Write episodes as a DP3 zarr v2 replay buffer (blosc/zstd compressed), atomically.
+    """Write episodes as a DP3 zarr v2 replay buffer (blosc/zstd compressed, every chunk written, zeros too),
+    atomically. ``overwrite=True`` replaces an earlier store (or an empty folder), never another folder.
 
     ``keys`` maps episode keys to zarr arrays (default: DP3's names for
     point_cloud / agent_pos / action; any other episode key ``k`` goes to
@@ -210,6 +278,10 @@ def export_dp3_zarr(
     path = Path(path).expanduser()
     if path.exists() and not overwrite:
         raise DDPError(f"{path}: exists (pass overwrite=True to replace it)")
+    is_store = (path / ".zgroup").is_file() or (path / "zarr.json").is_file()
+    if path.exists() and not is_store and (not path.is_dir() or any(path.iterdir())):
+        raise DDPError(f"{path}: exists and is not a zarr store: overwrite=True replaces only a store (or an "
+                       "empty folder)")
     keys = {**DEFAULT_KEYS, **(keys or {})}
     compressor = numcodecs.Blosc(cname="zstd", clevel=3, shuffle=numcodecs.Blosc.SHUFFLE)
     v3 = int(zarr.__version__.split(".")[0]) >= 3
@@ -224,10 +296,10 @@ def export_dp3_zarr(
             chunks = (min(chunk_steps, max(1, data.shape[0])),) + tuple(data.shape[1:])
             if v3:
                 z = group.create_array(array_name, shape=data.shape, chunks=chunks, dtype=data.dtype,
-                                       compressors=compressor)  # fmt: skip
+                                       compressors=compressor, config={"write_empty_chunks": True})  # fmt: skip
             else:
                 z = group.create_dataset(array_name, shape=data.shape, chunks=chunks, dtype=data.dtype,
-                                         compressor=compressor)  # fmt: skip
+                                         compressor=compressor, write_empty_chunks=True)  # fmt: skip
             z[...] = data
 
     atomic_directory(path, write)  # an earlier store stays whole until the new one is in place

@@ -63,6 +63,10 @@ def check_task(episodes: Episodes, task, where: str) -> None:
     if task is None:
         return
     steps = episodes.steps
+    for key, dims in (("action", 2), ("agent_pos", 2), ("point_cloud", 3)):
+        if steps[key].dim() != dims:
+            raise DDPError(f"{where}: {key} has shape {tuple(steps[key].shape)}; expected {dims} dimensions "
+                           f"([steps{', points' if dims == 3 else ''}, channels])")
     got = {
         "action_dim": steps["action"].shape[-1],
         "agent_pos_dim": steps["agent_pos"].shape[-1],

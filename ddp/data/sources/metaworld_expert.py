@@ -15,8 +15,8 @@ at success. Caching (hash in ``<path>/generation.json``, atomic writes,
 reuse of larger caches) is :class:`ddp.data.cached_demos.CachedExpertDemos`.
 
 Seeding: attempt ``i`` resets the env with seed ``seed + i``; the MetaWorld
-env maps seed ``s`` to MT1 initial state ``s % 50`` (within
-``env.task_indices``). ``seed`` defaults to 0, not to the recipe's seed, so
+env maps seed ``s`` to MT1 initial state ``start + s % (stop - start)``
+of ``env.task_indices = [start, stop)`` (``s % 50`` with the default range). ``seed`` defaults to 0, not to the recipe's seed, so
 that training seeds 0, 1, 2 share one dataset as in the paper.
 """
 

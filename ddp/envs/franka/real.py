@@ -161,7 +161,7 @@ class RealBackendConfig:
             raise ValueError(f"{p}.gripper_open_width must be in (0, 0.08] metres or null; got {self.gripper_open_width}")
         if self.home_position is not None:
             home = np.asarray(self.home_position, dtype=float)
-            if home.shape != (3,) or np.any(home < low) or np.any(home > high):
+            if home.shape != (3,) or not np.all(np.isfinite(home)) or np.any(home < low) or np.any(home > high):
                 raise ValueError(f"{p}.home_position must be 3 numbers inside the workspace box; got {self.home_position}")
             self.home_position = tuple(home.tolist())
         if len(tuple(self.home_quaternion)) != 4:
@@ -463,6 +463,8 @@ class FrankyBackend(FrankaBackend):
             self.robot.recover_from_errors()
         if home and cfg.reset_lift > 0.0:  # clear of the table before the joint motion sweeps the arm home
             pos, quat = self.ee_pose()
+            require_finite("measured end-effector pose", np.concatenate([np.ravel(pos), np.ravel(quat)]),
+                           "franky backend (reset lift)")  # max(nan, x) is nan: the lift's target would be too
             up = pos.copy()  # straight up (a hand outside the box's x-y is not dragged into it sideways), to
             up[2] = max(pos[2], min(pos[2] + cfg.reset_lift, self._high[2]))  # the box's top at most, never down
             try:
