@@ -241,9 +241,9 @@ def _detect(args) -> int:
 
 
 def cmd_suite(args) -> int:
-    from ddp.suite import SuiteRunsFailed, load_suite, run_suite, select, write_suite_report
-    from ddp.suite.budget import (EXIT_TIME_LIMIT, SuiteTimeLimit, estimate_seconds, fmt_minutes, parse_duration,
-                                  stored_results, total_expected)
+    from ddp.file_lock import exclusive_lock
+    from ddp.suite import SuiteRunsFailed, load_suite, run_suite, select
+    from ddp.suite.budget import SuiteTimeLimit, estimate_seconds, fmt_minutes, parse_duration, stored_results, total_expected
     from ddp.suite.reevaluate import plan_reevaluation
     from ddp.suite.store import ResultStore
     from ddp.suite.superseded import superseded
@@ -323,6 +323,16 @@ def cmd_suite(args) -> int:
                       gpus_per_run=args.gpus_per_run, reevaluate=reevaluate, time_limit=time_limit)
         except (SuiteRunsFailed, SuiteTimeLimit) as err:  # the table still shows what finished
             failed = err
+    with exclusive_lock(Path(suite.results_dir) / "report"):  # another suite process's report waits: the
+        return _suite_report(suite, failed)  # last one written read the store last
+
+
+def _suite_report(suite, failed) -> int:
+    """The suite's report from every stored run (under the report lock), and the exit status."""
+    from ddp.suite import write_suite_report
+    from ddp.suite.budget import EXIT_TIME_LIMIT, SuiteTimeLimit
+    from ddp.suite.store import ResultStore
+
     done = ResultStore(suite.results_dir).all(suite.runs)  # the table covers every stored run
     # labelled as the suite file labels them now (a task's benchmark is no part of a run's identity)
     results = [{**done[r.run_id], "task": r.task, "method": r.method, "seed": r.seed, "benchmark": r.benchmark}
@@ -337,7 +347,7 @@ def cmd_suite(args) -> int:
         raise DDPError(f"no finished runs of suite {suite.name!r} in {suite.results_dir} yet")
     paths = write_suite_report(results, suite.results_dir, f"suite {suite.name} ({len(results)}/{len(suite.runs)} runs)",
                                reference=suite.reference, tasks_of_suite=suite.tasks)
-    print(paths[0].read_text(), end="")
+    print(paths[0].read_text(), end="")  # (no other process writes it while the lock is held)
     print(f"wrote {', '.join(str(p) for p in paths)}")
     if isinstance(failed, SuiteTimeLimit):
         print(f"ddp: {failed}", file=sys.stderr)

@@ -119,7 +119,9 @@ class Calibratable(Protocol):
 
 class Tracker(Protocol):
     """How far each tracked object moved: writes its ``"offsets"`` key role ([B, K, 3]); ``in_keys`` /
-    ``out_keys`` as for :class:`Detector`."""
+    ``out_keys`` as for :class:`Detector`. Optionally a ``"visible"`` role ([B, K] bool, ``key("visible")``
+    raising KeyError where there is none): which objects it measured this cycle, so that an object seen back
+    at its place (offset 0) is told from one it cannot see (without it, a zero offset reads "not seen")."""
 
     in_keys: list
     out_keys: list

@@ -304,14 +304,29 @@ class DDPController(KeyedModule):
         return bool(((offsets[b] - s.accepted).norm(dim=-1)[seen] <= NEW_DISPLACEMENT).all())
 
     @staticmethod
-    def _scene_to_accept(s: EnvState, offsets: torch.Tensor | None, b: int) -> torch.Tensor | None:
+    def _scene_to_accept(s: EnvState, offsets: torch.Tensor | None, measured, b: int) -> torch.Tensor | None:
         """The offsets accepted when reality resumes: what the tracker sees now, and for an object it cannot
-        see (zero offset) the offset it was last tracked at, so its reappearance there is no new event."""
+        see (``measured`` False) the offset it was last tracked at, so its reappearance there is no new event."""
         if offsets is None:
             return None
-        seen = offsets[b].norm(dim=-1, keepdim=True) > MIN_OFFSET
         known = s.offsets if s.offsets is not None else torch.zeros_like(offsets[b])
-        return torch.where(seen, offsets[b], known).clone()
+        return torch.where(measured[b][:, None], offsets[b], known).clone()
+
+    def _measured(self, td, offsets: torch.Tensor | None) -> torch.Tensor | None:
+        """[B, K] which objects the tracker measured this cycle: its optional ``"visible"`` output (a depth
+        tracker sees an object back at its place, offset 0, as well as a moved one), else a non-zero offset
+        (the oracle's zero reads "not displaced", and an unmeasured offset reads zero)."""
+        if offsets is None:
+            return None
+        shown = offsets.norm(dim=-1) > MIN_OFFSET
+        try:
+            key = self.tracker.key("visible")
+        except KeyError:  # a tracker without the role
+            return shown
+        visible = td.get(key, None)
+        if not (isinstance(visible, torch.Tensor) and visible.shape == shown.shape):
+            return shown
+        return visible.cpu().bool() & torch.isfinite(offsets).all(-1)
 
     def _track(self, s: EnvState, b: int, ee_shift: torch.Tensor, offsets: torch.Tensor) -> None:
         """a^track_j = Delta p_Cj for the current subtask's target, if it is displaced and not yet tracked
@@ -560,6 +575,7 @@ class DDPController(KeyedModule):
             # zeroing NaN components alone made [nan, 0.15, 0] a 15 cm shift along y
             offsets = offsets.cpu().float()
             offsets = torch.where(torch.isfinite(offsets).all(-1, keepdim=True), offsets, torch.zeros(()))
+        measured = self._measured(td, offsets)
         num_objects = offsets.shape[-2] if offsets is not None else 0
         if offsets is not None:
             for j, sub in enumerate(self.subtasks):
@@ -627,7 +643,7 @@ class DDPController(KeyedModule):
                     s.ood = False  # D_R-I <= tau: return to reality
                 elif self.resume_after_recovery and self._targets_recovered(s):
                     s.ood = False  # every displaced target is back: reality, with the rest of the scene as it is
-                    s.accepted = self._scene_to_accept(s, offsets, b)
+                    s.accepted = self._scene_to_accept(s, offsets, measured, b)
                 elif self.recheck_until_id and not self._left_to_recover(s):
                     s.recheck_after = chunk_index[b]  # nothing left to track or recover: re-check next cycle too
 
@@ -643,9 +659,9 @@ class DDPController(KeyedModule):
             if bool(seen.any()):
                 s.offsets = torch.where(seen[:, None], offsets[b], s.offsets)
                 s.displaced |= seen
-            # a^track = p_Cj - p_Cj^exp when it executes: the offset seen now, or the last one known for an
-            # object the tracker cannot see now (hidden, carried)
-            self._track(s, b, ee_shift, torch.where(visible[:, None], offsets[b], s.offsets))
+            # a^track = p_Cj - p_Cj^exp when it executes: the offset measured now (zero for an object seen back
+            # at its place), or the last one known for an object the tracker cannot see now (hidden, carried)
+            self._track(s, b, ee_shift, torch.where(measured[b][:, None], offsets[b], s.offsets))
 
         # O_curr: real latents in ID, imagined ones in OOD (Enter Imagination)
         imagined = [self.imagine and s.ood and s.has_forecast for s in self.states]

@@ -567,6 +567,62 @@ def test_report_states_what_the_runs_cost(tmp_path):
     assert tmp_path / "cost.md" in paths
     assert "| ddp | 3 | 3000 | 15.0 [10.0, 20.0] | 3.0 [3.0, 3.0] | 20.0 [15.0, 25.0] | 1.0 |" in cost
     assert "| dp3 | 1 | 1000 | 1.0 [1.0, 1.0] | 0.0 [0.0, 0.0] | 1.5 [1.5, 1.5] | 0.0 |" in cost
+    # a resumed run: its wall_seconds cover its last start only (6 min of 76 trained); the earlier attempts'
+    # training counts too (the stored assembly / push runs said 6 and 3 minutes for over an hour)
+    resumed = {**_result("a", "flow", 0, {"id": 1.0}), "wall_seconds": 360.0,
+               "train": {"steps": 9000, "seconds": 4560.0, "attempt_seconds": 240.0}}
+    write_suite_report([resumed], tmp_path, "t")
+    assert "| flow | 1 | 9000 | 76.0 [76.0, 76.0] | 0.0 [0.0, 0.0] | 78.0 [78.0, 78.0] | 1.3 |" in \
+        (tmp_path / "cost.md").read_text()
+
+
+def test_concurrent_suite_processes_write_the_report_in_turn(suite_file, monkeypatch):
+    """Two `ddp suite` processes on one suite (other --tasks) each read the store, then wrote the report: the
+    one that read first could write last, leaving the committed report without the other's run. The store is
+    read and the report written under one lock, so the last writer read last."""
+    from ddp import cli
+    from ddp.file_lock import LockBusy, exclusive_lock
+    from ddp.suite import report
+
+    suite = load_suite(suite_file)
+    store = ResultStore(suite.results_dir)
+    for run in suite.runs:
+        store.save(run, _result(run.task, run.method, run.seed, {"id": 1.0}, bench=run.benchmark))
+    held = []
+
+    def locked() -> bool:
+        try:
+            with exclusive_lock(suite.results_dir / "report", wait=False):
+                return False
+        except LockBusy:
+            return True
+
+    real_all, real_write = ResultStore.all, report.write_suite_report
+    monkeypatch.setattr(ResultStore, "all", lambda self, runs: (held.append(("read", locked())),
+                                                                 real_all(self, runs))[1])
+    monkeypatch.setattr(report, "write_suite_report", lambda *a, **k: (held.append(("write", locked())),
+                                                                        real_write(*a, **k))[1])
+    import ddp.suite
+
+    monkeypatch.setattr(ddp.suite, "write_suite_report", report.write_suite_report)
+    assert cli.main(["suite", str(suite_file), "--report"]) == 0
+    assert held == [("read", True), ("write", True)], held
+    with exclusive_lock(suite.results_dir / "report", wait=False):  # released after
+        pass
+
+
+def test_a_run_another_suite_process_is_running_is_refused_in_one_line(suite_file):
+    """Overlapping selections (one process started without --tasks) trained or evaluated one run twice into
+    one folder; the second process now gets one line and the run is left to the first."""
+    from ddp.file_lock import LockBusy, exclusive_lock
+    from ddp.suite.runner import execute_run
+
+    run = load_suite(suite_file).runs[0]
+    run_dir = Path(run.recipe["train"]["output_dir"])
+    with exclusive_lock(run_dir, wait=False):
+        with pytest.raises(LockBusy, match=rf"{run_dir}: another ddp suite process is running this run") as err:
+            execute_run(run)
+    assert "\n" not in str(err.value) and not (run_dir / "log.txt").exists()  # nothing ran
 
 
 def test_stored_results_keep_the_detector_traces_and_the_report_draws_them(tmp_path):

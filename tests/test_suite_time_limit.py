@@ -218,7 +218,7 @@ def test_a_run_whose_worker_died_at_the_limit_is_not_said_to_have_saved(tmp_path
     from ddp.suite.runner import _collect, _Limit
 
     limit = _Limit(10.0, tmp_path, say=lambda *_: None)
-    runs = [_run_stub(tmp_path), _run_stub(tmp_path)]
+    runs = [_run_stub(tmp_path, seed=0), _run_stub(tmp_path, seed=1)]  # two ids: a swap would show
     for run, err in zip(runs, (KeyboardInterrupt(), BrokenProcessPool("a worker died"))):
         fut = Future()
         fut.set_exception(err)
@@ -226,7 +226,7 @@ def test_a_run_whose_worker_died_at_the_limit_is_not_said_to_have_saved(tmp_path
     assert limit.stopped == [runs[0].run_id] and limit.killed == [runs[1].run_id]
     text = str(SuiteTimeLimit(10.0, limit.stopped, {}, {}, killed=limit.killed))
     assert "stopped 1 run(s) in progress (t__m__seed0; a training run saved its checkpoint)" in text
-    assert "killed 1 run(s) that did not stop in time (t__m__seed0; each resumes from its last periodic" in text
+    assert "killed 1 run(s) that did not stop in time (t__m__seed1; each resumes from its last periodic" in text
 
 
 def test_a_stopping_pool_stores_the_runs_that_finished_before_it_could_collect_them(tmp_path):
@@ -283,11 +283,11 @@ def test_an_interrupted_ray_suite_cancels_its_tasks_so_they_save(tmp_path, monke
     assert limit.skipped == {runs[0].run_id: None}  # its log shows no start in this attempt
 
 
-def _run_stub(tmp_path):
+def _run_stub(tmp_path, seed: int = 0):
     from ddp.suite.spec import RunSpec
 
-    return RunSpec(suite="s", task="t", method="m", seed=0, benchmark="b", protocols=None, episodes=None,
-                   recipe={"train": {"output_dir": "runs/suites/s/t__m__seed0"}})
+    return RunSpec(suite="s", task="t", method="m", seed=seed, benchmark="b", protocols=None, episodes=None,
+                   recipe={"train": {"output_dir": f"runs/suites/s/t__m__seed{seed}"}})
 
 
 def test_a_pool_at_its_time_limit_saves_its_runs_and_exits_75(suite_file):

@@ -342,6 +342,26 @@ def test_occluded_object_reads_zero_and_not_visible(scene, segmentation):
     assert vis.all() and mm(off[0] - [0.05, 0.0, 0.0]) < 4.0
 
 
+def test_an_object_hidden_on_the_first_frame_is_said_and_a_count_from_labels_is_checked(scene):
+    """An object not found on the episode's first frame read offset 0 and not visible for the whole episode,
+    silently; without num_objects the count came from that frame's labels, so a hidden last object left the
+    count short (the controller then blamed the recipe's subtask target)."""
+    from ddp.errors import RecipeError
+
+    scene.move_plate([0.75, A0[1], 0.2])  # box a (label 0) hidden on the first frame
+    with pytest.warns(RuntimeWarning, match=r"environment 0: object\(s\) \[0\] found on the episode's first frame"):
+        track(pointcloud(), scene, 0)
+    scene.move_plate(OFF_VIEW)
+    scene.place(1, B0 + [0.0, 0.0, -1.0])  # box b (label 1, the last) below the table: not in view
+    counted = PointCloudTracker(PointCloudTrackerConfig())  # count from the labels
+    off, _, _ = track(counted, scene, 0)
+    assert off.shape == (1, 3)
+    scene.place(1, B0)  # back in view: label 1 appears
+    with pytest.raises(RecipeError, match=r"controller.tracker.num_objects: the segmentation shows object label 1, "
+                                          r"but the episode's first frame showed 1 object"):
+        track(counted, scene, 1)
+
+
 def test_reference_is_per_environment_and_reset_at_chunk_zero(scene):
     tracker = pointcloud()
     start = scene.frame()

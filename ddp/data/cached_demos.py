@@ -28,13 +28,10 @@ how to build the expert (``make_expert``). The rest is here:
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import fcntl
 import hashlib
 import json
 import logging
-import os
 import time
 import warnings
 from dataclasses import dataclass
@@ -46,6 +43,7 @@ from ddp.config import to_dict, without_neutral_defaults
 from ddp.data.demos import generate_demos
 from ddp.data.episodes import Episodes
 from ddp.errors import DDPError, RecipeError
+from ddp.file_lock import exclusive_lock
 from ddp.schema import Part
 
 __all__ = ["CachedDemosConfig", "CachedExpertDemos", "GENERATION_FILE", "demo_env_config"]
@@ -55,18 +53,10 @@ log = logging.getLogger(__name__)
 GENERATION_FILE = "generation.json"
 
 
-@contextlib.contextmanager
 def cache_lock(path: Path):
     """Hold an exclusive (blocking) ``flock`` on ``<path.parent>/.<path.name>.lock``; the kernel drops it if
     the process dies."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path.parent / f".{path.name}.lock", os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        os.close(fd)
+    return exclusive_lock(path)
 
 
 @dataclass

@@ -241,17 +241,30 @@ def _minutes(seconds: list[float]) -> str:
     return f"{statistics.median(seconds) / 60:.1f} [{min(seconds) / 60:.1f}, {max(seconds) / 60:.1f}]"
 
 
+def run_wall_seconds(result: dict) -> float | None:
+    """A run's wall time over all its attempts: the last start's ``wall_seconds`` plus the training that
+    earlier attempts did (a resumed run's ``train.seconds`` counts every attempt, ``attempt_seconds`` the last)."""
+    if result.get("wall_seconds") is None:
+        return None
+    train = result.get("train") or {}
+    earlier = 0.0
+    if train.get("seconds") is not None and train.get("attempt_seconds") is not None:
+        earlier = max(float(train["seconds"]) - float(train["attempt_seconds"]), 0.0)
+    return float(result["wall_seconds"]) + earlier
+
+
 def cost_markdown(results: list[dict], title: str) -> str:
     """What the stored runs cost, per method: training time (all of it, across resumes), the evaluation
-    protocols' time, and the wall time each run recorded (since its last start, for a resumed run)."""
-    lines = [f"{title}: compute per stored run, in minutes (median [min, max]); totals in hours", "",
+    protocols' time, and each run's wall time over all its attempts (:func:`run_wall_seconds`)."""
+    lines = [f"{title}: compute per stored run, in minutes (median [min, max]); totals in hours; a resumed "
+             "run's wall time adds the training its earlier attempts did", "",
              "| method | runs | training steps | training | evaluation protocols | wall time | total wall time |",
              "|---|---|---|---|---|---|---|"]
     for method in sorted({r["method"] for r in results}):
         runs = [r for r in results if r["method"] == method]
         train = [float(r["train"]["seconds"]) for r in runs if (r.get("train") or {}).get("seconds") is not None]
         evals = [evaluation_seconds(r) for r in runs]
-        wall = [float(r["wall_seconds"]) for r in runs if r.get("wall_seconds") is not None]
+        wall = [w for w in map(run_wall_seconds, runs) if w is not None]
         steps = sorted({int(r["train"]["steps"]) for r in runs if (r.get("train") or {}).get("steps") is not None})
         lines.append(f"| {method} | {len(runs)} | {', '.join(map(str, steps)) or '-'} | "
                      f"{_minutes(train) if train else '-'} | {_minutes(evals)} | {_minutes(wall) if wall else '-'} | "

@@ -38,6 +38,7 @@ import traceback
 from pathlib import Path
 
 from ddp.errors import DDPError
+from ddp.file_lock import exclusive_lock
 from ddp.percent import percent
 from ddp.preemption import Preempted, interruption, signals_deferred, stop_signals
 from ddp.suite.budget import (Deadline, SuiteTimeLimit, estimate_seconds, fmt_elapsed, fmt_minutes, trains_on,
@@ -107,14 +108,24 @@ def execute_run(run: RunSpec, threads: int | None = None, cwd: str | None = None
     ``deferred`` (the caller stores the result, then stops), so a finished evaluation is never thrown away."""
     import torch
 
-    from ddp.experiment import build
-
     if cwd is not None:
         os.chdir(cwd)
     process_code()  # the code this process runs: its first look, unless a pool worker's start took it
     if threads:
         torch.set_num_threads(threads)
     run_dir = Path(run.recipe["train"]["output_dir"])
+    # one suite process per run, from its set-aside check to its evaluation (two processes whose selections
+    # overlap would evaluate into one folder; the lock sits beside the folder, which may be moved aside)
+    with exclusive_lock(run_dir, wait=False, busy="another ddp suite process is running this run (pick other "
+                                                   "--tasks / --methods / --seeds, or wait for it)"):
+        return _execute_run(run, run_dir, deferred)
+
+
+def _execute_run(run: RunSpec, run_dir: Path, deferred: list[int] | None) -> dict:
+    import torch
+
+    from ddp.experiment import build
+
     t0 = time.perf_counter()
     if run.reevaluate:
         return _reevaluate_run(run, run_dir, t0)

@@ -18,6 +18,7 @@ themselves in their own modules.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -148,6 +149,17 @@ class ObjectTracker(KeyedModule):
         "visible": ("ddp", "object_visible"),
         "carried": ("ddp", "object_carried"),
     }
+
+    def _warn_unseen(self, b: int, references: list) -> None:
+        """Warn (at each episode's start) about objects not found on its first frame: their reference is
+        missing, so they read offset 0 and not visible for the whole episode (never tracked or recovered)."""
+        missing = [k for k, r in enumerate(references) if r is None]
+        if missing:
+            whole = len(missing) == len(references)
+            warnings.warn(f"{type(self).__name__}: environment {b}: {'no object' if whole else f'object(s) {missing}'} "
+                          f"found on the episode's first frame (hidden, or a bad depth frame): "
+                          f"{'nothing' if whole else 'they are not'} tracked this episode", RuntimeWarning,
+                          stacklevel=3)
 
     def _row_segmentation(self, b: int, segmentation, new_episode: bool):
         """Row ``b``'s segmentation image when its episode isolates objects by masks, else None (geometry):

@@ -367,6 +367,7 @@ class FoundationPoseTracker(ObjectTracker):
                     None if ee is None else ee[b])
             if new_episode:
                 self.states[b] = self._reference(b, *args)  # p^exp: the episode's first (ID) frame
+                self._warn_unseen(b, self.states[b])
                 n = self.num_objects
                 visible = np.array([s is not None for s in self.states[b]])
                 results.append((np.zeros((n, 3)), visible, np.zeros(n, dtype=bool)))

@@ -371,6 +371,18 @@ class PointCloudTracker(ObjectTracker):
         raise RecipeError("cannot tell how many objects to track (no labelled segmentation image); set num_objects "
                           "(or isolation.expected_positions)", key="controller.tracker")
 
+    def _check_count(self, segmentation, counted: int) -> None:
+        """The object count taken from the first frame's labels (no ``num_objects``) must cover the labels seen
+        since: an object hidden on that frame would be left out for the whole episode."""
+        c = self.config
+        if c.num_objects is not None or c.isolation.expected_positions is not None or segmentation is None:
+            return
+        top = int(np.max(segmentation))
+        if top >= counted:
+            raise RecipeError(f"the segmentation shows object label {top}, but the episode's first frame showed "
+                              f"{counted} object(s) (one was hidden there): set the count", key="controller.tracker."
+                              "num_objects")
+
     def _reference(self, depth, K, T, seg, ee) -> _EnvRef:
         K_obj = self._num_objects(seg)
         anchors = self.config.isolation.expected_positions
@@ -472,8 +484,12 @@ class PointCloudTracker(ObjectTracker):
             seg_b = self._row_segmentation(b, seg, new_episode)
             if new_episode:
                 self.refs[b] = self._reference(depth[b], K[b], T[b], seg_b, ee_b)
+                self._warn_unseen(b, self.refs[b].objects)
+            else:
+                self._check_count(seg_b, len(self.refs[b].objects))
             results.append(self._track_env(self.refs[b], depth[b], K[b], T[b], seg_b, ee_b))
         sizes = {len(r[0]) for r in results}
         if len(sizes) != 1:
-            raise ValueError(f"pointcloud tracker: environments disagree on the number of objects ({sorted(sizes)})")
+            raise RecipeError(f"the environments' first frames show different numbers of objects ({sorted(sizes)}): "
+                              "set the count", key="controller.tracker.num_objects")
         return self._write(td, results, x.unbatched)
