@@ -323,6 +323,8 @@ def cmd_suite(args) -> int:
                       gpus_per_run=args.gpus_per_run, reevaluate=reevaluate, time_limit=time_limit)
         except (SuiteRunsFailed, SuiteTimeLimit) as err:  # the table still shows what finished
             failed = err
+    if not Path(suite.results_dir).is_dir():  # nothing stored: nothing to lock (nor a folder to make)
+        return _suite_report(suite, failed)
     with exclusive_lock(Path(suite.results_dir) / "report"):  # another suite process's report waits: the
         return _suite_report(suite, failed)  # last one written read the store last
 

@@ -118,7 +118,10 @@ class ChunkedEnvFactory:
         try:
             return ChunkedEnv(base, self.action_steps, self.obs_steps, safe_lift=self.safe_lift, video=self.video)
         except BaseException:  # the base env holds a simulator, a renderer or a robot connection
-            base.close()
+            try:
+                base.close()
+            except Exception:  # noqa: BLE001 - the refusal is the error to report
+                pass
             raise
 
 

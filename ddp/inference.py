@@ -102,6 +102,7 @@ class EnvState:
     followed: torch.Tensor | None = None  # [K, 3] the a^track each object's shift executed (as the env applied it)
     last_track: int | None = None  # the object tracked in the last cycle, whose applied shift is read back
     last_shift: torch.Tensor | None = None  # the shift requested in that cycle
+    deferred_track: int | None = None  # a target whose a^track a held chunk took back: tracked on a cycle that acts
     subtask: int = 0
     subtask_start: int = 0
     trigger_state: dict = field(default_factory=dict)  # the current subtask's trigger's memory (fired(state=))
@@ -290,7 +291,10 @@ class DDPController(KeyedModule):
 
     @staticmethod
     def _awaits_recovery(s: EnvState) -> bool:
-        """The end-effector executed a^track for an object whose a^rec has not come yet (its subtask runs)."""
+        """The end-effector executed a^track for an object whose a^rec has not come yet (its subtask runs), or a
+        held chunk took back the a^track of its subtask's target (it comes on the next cycle that acts)."""
+        if s.deferred_track is not None:
+            return True
         return s.tracked is not None and bool((s.tracked & ~s.recovered).any())
 
     @staticmethod
@@ -312,21 +316,29 @@ class DDPController(KeyedModule):
         known = s.offsets if s.offsets is not None else torch.zeros_like(offsets[b])
         return torch.where(measured[b][:, None], offsets[b], known).clone()
 
-    def _measured(self, td, offsets: torch.Tensor | None) -> torch.Tensor | None:
+    def _measured(self, td, offsets: torch.Tensor | None, finite: torch.Tensor | None) -> torch.Tensor | None:
         """[B, K] which objects the tracker measured this cycle: its optional ``"visible"`` output (a depth
-        tracker sees an object back at its place, offset 0, as well as a moved one), else a non-zero offset
-        (the oracle's zero reads "not displaced", and an unmeasured offset reads zero)."""
+        tracker sees an object back at its place, offset 0, as well as a moved one) less the objects it calls
+        ``"carried"`` (their offset reads 0 in the hand) and those whose offset was not finite (``finite``,
+        before cleaning); without the role, a non-zero offset (the oracle's zero reads "not displaced", and an
+        unmeasured offset reads zero)."""
         if offsets is None:
             return None
         shown = offsets.norm(dim=-1) > MIN_OFFSET
+        visible = self._tracker_mask(td, "visible", shown.shape)
+        if visible is None:
+            return shown
+        carried = self._tracker_mask(td, "carried", shown.shape)
+        return visible & finite & (~carried if carried is not None else True)
+
+    def _tracker_mask(self, td, role: str, shape) -> torch.Tensor | None:
+        """The tracker's optional [B, K] bool output ``role``; None if it has no such role or wrote none."""
         try:
-            key = self.tracker.key("visible")
+            key = self.tracker.key(role)
         except KeyError:  # a tracker without the role
-            return shown
-        visible = td.get(key, None)
-        if not (isinstance(visible, torch.Tensor) and visible.shape == shown.shape):
-            return shown
-        return visible.cpu().bool() & torch.isfinite(offsets).all(-1)
+            return None
+        mask = td.get(key, None)
+        return mask.cpu().bool() if isinstance(mask, torch.Tensor) and mask.shape == shape else None
 
     def _track(self, s: EnvState, b: int, ee_shift: torch.Tensor, offsets: torch.Tensor) -> None:
         """a^track_j = Delta p_Cj for the current subtask's target, if it is displaced and not yet tracked
@@ -342,6 +354,7 @@ class DDPController(KeyedModule):
         s.tracked[target] = True
         s.followed[target] = offsets[target]
         s.last_track = target
+        s.deferred_track = None
 
     def _defer_track(self, s: EnvState, b: int, ee_shift: torch.Tensor) -> None:
         """Take back the a^track :meth:`_track` added this cycle (at most one: an object is tracked once), for
@@ -352,6 +365,7 @@ class DDPController(KeyedModule):
         ee_shift[b] -= s.followed[target]
         s.tracked[target] = False
         s.followed[target] = torch.zeros_like(s.followed[target])
+        s.deferred_track = target  # OOD until it is tracked (or its subtask ends: nothing executed to undo)
 
     def _read_back_shifts(self, td) -> None:
         """The env's ``ee_shift_applied`` (ChunkedEnv: the shift it executed, clipped to its workspace) for the
@@ -574,8 +588,9 @@ class DDPController(KeyedModule):
             # an offset the tracker could not measure (any component non-finite) is no displacement, whole:
             # zeroing NaN components alone made [nan, 0.15, 0] a 15 cm shift along y
             offsets = offsets.cpu().float()
-            offsets = torch.where(torch.isfinite(offsets).all(-1, keepdim=True), offsets, torch.zeros(()))
-        measured = self._measured(td, offsets)
+            finite_offsets = torch.isfinite(offsets).all(-1)
+            offsets = torch.where(finite_offsets[..., None], offsets, torch.zeros(()))
+        measured = self._measured(td, offsets, finite_offsets if offsets is not None else None)
         num_objects = offsets.shape[-2] if offsets is not None else 0
         if offsets is not None:
             for j, sub in enumerate(self.subtasks):
@@ -610,6 +625,7 @@ class DDPController(KeyedModule):
                 if bool(recovered.any()):
                     s.recheck_after = chunk_index[b]  # re-evaluate D_R-I once the shift is observed
             s.subtask, s.subtask_start, s.trigger_state = s.subtask + 1, chunk_index[b], {}
+            s.deferred_track = None  # its target's shift never executed: nothing is left to track or undo
 
         # 1. OOD detection & tracking
         ood_now = self.detector(td).get(self.detector.key("ood")).reshape(B).tolist()
@@ -660,7 +676,7 @@ class DDPController(KeyedModule):
                 s.offsets = torch.where(seen[:, None], offsets[b], s.offsets)
                 s.displaced |= seen
             # a^track = p_Cj - p_Cj^exp when it executes: the offset measured now (zero for an object seen back
-            # at its place), or the last one known for an object the tracker cannot see now (hidden, carried)
+            # at its place), or the last one known for an object it cannot measure now (hidden, carried)
             self._track(s, b, ee_shift, torch.where(measured[b][:, None], offsets[b], s.offsets))
 
         # O_curr: real latents in ID, imagined ones in OOD (Enter Imagination)

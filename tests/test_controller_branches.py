@@ -416,22 +416,24 @@ class PutBackTracker(ScriptedTracker):
     """Object 1 moved at chunk 2 and put back at chunk 3 (offset 0 from then on), every object in view:
     with ``visible`` its "object_visible" output says so, as the depth trackers' does."""
 
-    def __init__(self, moved, visible: bool):
+    def __init__(self, moved, visible: bool, carried: bool = False, after: float = 0.0):
         super().__init__([[0.0, 0.0, 0.0], moved], from_chunk=2)
-        self.visible = visible
+        self.visible, self.carried, self.after = visible, carried, after
 
     def forward(self, td):
         td = super().forward(td)
         chunk = td.get("chunk_index").reshape(-1)
-        td.get(("ddp", "offsets"))[chunk >= 3] = 0.0
+        td.get(("ddp", "offsets"))[chunk >= 3] = self.after  # (NaN: a measurement that failed)
         if self.visible:
             td.set(("ddp", "object_visible"), torch.ones(chunk.shape[0], 2, dtype=torch.bool))
+            # carried: in the hand from chunk 3 on (its offset reads 0 there, as the depth trackers' does)
+            td.set(("ddp", "object_carried"), (chunk >= 3)[:, None] & torch.tensor([False, self.carried]))
         return td
 
     def key(self, role):
-        if role == "visible" and not self.visible:
+        if role in ("visible", "carried") and not self.visible:
             raise KeyError(role)
-        return ("ddp", "object_visible") if role == "visible" else ("ddp", role)
+        return {"visible": ("ddp", "object_visible"), "carried": ("ddp", "object_carried")}.get(role, ("ddp", role))
 
 
 def test_a_target_seen_back_at_its_place_is_not_shifted_by_its_old_offset(tiny_recipe):
@@ -444,13 +446,16 @@ def test_a_target_seen_back_at_its_place_is_not_shifted_by_its_old_offset(tiny_r
                                           {"target": 1, "trigger": {"name": "chunk_index", "chunk": 6}},
                                           {"target": None}])
     moved = [0.0, 0.1, 0.0]
-    for visible, at_4 in ((True, [0.0] * 3), (False, moved)):
+    # carried (in the hand, offset 0) is not "back at its place": the offset known before counts, as when hidden
+    # and a non-finite offset is no measurement, whatever "visible" says
+    for visible, carried, after, at_4 in ((True, False, 0.0, [0.0] * 3), (False, False, 0.0, moved),
+                                          (True, True, 0.0, moved), (True, False, float("nan"), moved)):
         ctrl = exp.make_controller()
         ctrl.detector = ScriptedStickyDetector(ood_at={2})
-        ctrl.tracker = PutBackTracker(moved, visible)
+        ctrl.tracker = PutBackTracker(moved, visible, carried, after)
         r = rollout(exp, ctrl)
         assert r["ddp", "subtask"].tolist() == [0, 0, 0, 0, 1, 1, 2, 2]
-        assert shifts(r)[4] == at_4, visible
+        assert shifts(r)[4] == at_4, (visible, carried, after)
         assert torch.allclose(r["next", "privileged", "ee_offset"][-1], ZERO, atol=1e-6)
 
 

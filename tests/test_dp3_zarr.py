@@ -209,8 +209,11 @@ def test_missing_chunks_are_refused_not_read_as_zeros(demos, tmp_path):
         if not chunk.name.startswith("."):
             chunk.unlink()
             break
-    with pytest.raises(DDPError, match=r"partial.zarr: data/action: 1 of \d+ chunks are not stored"):
+    with pytest.raises(DDPError, match=r"partial.zarr: data/action: 1 of \d+ chunks are not stored.*"
+                                       r"data.fill_missing_chunks: true reads them"):
         read_dp3_zarr(path)
+    with pytest.warns(RuntimeWarning, match=r"data/action: 1 of \d+ chunks are not stored"):  # the opt-in
+        assert read_dp3_zarr(path, fill_missing=True).num_episodes == 3
     path = export_dp3_zarr(demos, tmp_path / "extra.zarr", chunk_steps=4)
     next(c for c in (path / "data" / "full_state").iterdir() if not c.name.startswith(".")).unlink()
     with pytest.warns(RuntimeWarning, match=r"data/full_state: 1 of \d+ chunks are not stored"):
@@ -243,6 +246,14 @@ def test_unsafe_codecs_and_damaged_metadata_are_refused_unread(demos, tmp_path):
     with pytest.raises(DDPError, match=r"data/state: unreadable array metadata .zarray") as err:
         read_dp3_zarr(path)
     assert "\n" not in str(err.value)
+    (tmp_path / "store.zip").write_bytes(b"PK")  # zarr 2 opens a zip file as a store: its codecs go unseen
+    with pytest.raises(DDPError, match=r"store.zip: not a directory; only directory zarr stores are read"):
+        read_dp3_zarr(tmp_path / "store.zip")
+    path = export_dp3_zarr(demos, tmp_path / "consolidated.zarr")  # metadata zarr reads from elsewhere: unseen
+    zarr.consolidate_metadata(str(path))
+    (path / "data" / "action" / ".zarray").unlink()
+    with pytest.raises(DDPError, match=r"data/action has no .zarray / zarr.json file on disk"):
+        read_dp3_zarr(path)
     path = export_dp3_zarr(demos, tmp_path / "float_ends.zarr")
     root = zarr.open(str(path), mode="r+")
     ends = root["meta/episode_ends"][:]

@@ -308,24 +308,28 @@ def test_a_held_chunk_does_not_move_the_arm_by_a_tracking_shift(tiny_recipe):
     from conftest import DELTA, displaced_exp
 
     exp = displaced_exp(tiny_recipe, on_nonfinite="hold")
-    ctrl = exp.make_controller(imagine=False)
-    env = make_chunked_env(exp, seed=0)
-    ctrl.reset()
-    td, held, shifts, offsets = env.reset(), [], [], []
-    for cycle in range(6):
-        if cycle == 2:  # the first observation showing the move
-            td = poison(td, "point_cloud")
-        out = ctrl(td)
-        held.append(bool(out["ddp", "held"]))
-        shifts.append(out["ee_shift"].clone())
-        td = env.step(out.select("action", "ee_shift"))["next"]
-        offsets.append(td["privileged", "ee_offset"].clone())
-    env.close()
-    assert held == [False, False, True, False, False, False]
-    assert torch.equal(shifts[2], torch.zeros(3)) and torch.equal(offsets[2], torch.zeros(3))  # held: no motion
-    assert torch.allclose(shifts[3], torch.tensor(DELTA))  # tracked on the next finite cycle
-    assert torch.allclose(shifts[4], -torch.tensor(DELTA))  # and undone at the subtask's end
-    assert torch.allclose(offsets[4], torch.zeros(3), atol=1e-6)
+    # the oracle detector re-decides every cycle; a sticky one that never fires keeps OOD only while the
+    # taken-back shift waits (the sensor fault's re-check would otherwise return to reality untracked)
+    for detector in ({"name": "oracle"}, {"name": "discrepancy", "tau": 1e9}):
+        ctrl = exp.make_controller(imagine=False, detector=detector)
+        env = make_chunked_env(exp, seed=0)
+        ctrl.reset()
+        td, held, shifts, offsets, modes = env.reset(), [], [], [], []
+        for cycle in range(6):
+            if cycle == 2:  # the first observation showing the move
+                td = poison(td, "point_cloud")
+            out = ctrl(td)
+            held.append(bool(out["ddp", "held"]))
+            shifts.append(out["ee_shift"].clone())
+            modes.append(int(out["ddp", "mode"]))
+            td = env.step(out.select("action", "ee_shift"))["next"]
+            offsets.append(td["privileged", "ee_offset"].clone())
+        env.close()
+        assert held == [False, False, True, False, False, False], detector
+        assert torch.equal(shifts[2], torch.zeros(3)) and torch.equal(offsets[2], torch.zeros(3))  # held: no motion
+        assert torch.allclose(shifts[3], torch.tensor(DELTA)), detector  # tracked on the next finite cycle
+        assert torch.allclose(shifts[4], -torch.tensor(DELTA))  # and undone at the subtask's end
+        assert torch.allclose(offsets[4], torch.zeros(3), atol=1e-6) and modes[2:5] == [1, 1, 1], (detector, modes)
 
 
 def test_an_env_factory_closes_the_base_env_when_the_chunked_env_is_refused(monkeypatch):

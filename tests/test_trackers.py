@@ -349,7 +349,7 @@ def test_an_object_hidden_on_the_first_frame_is_said_and_a_count_from_labels_is_
     from ddp.errors import RecipeError
 
     scene.move_plate([0.75, A0[1], 0.2])  # box a (label 0) hidden on the first frame
-    with pytest.warns(RuntimeWarning, match=r"environment 0: object\(s\) \[0\] found on the episode's first frame"):
+    with pytest.warns(RuntimeWarning, match=r"environment 0: object\(s\) \[0\] not found on the episode's first frame"):
         track(pointcloud(), scene, 0)
     scene.move_plate(OFF_VIEW)
     scene.place(1, B0 + [0.0, 0.0, -1.0])  # box b (label 1, the last) below the table: not in view

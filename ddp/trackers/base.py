@@ -156,10 +156,10 @@ class ObjectTracker(KeyedModule):
         missing = [k for k, r in enumerate(references) if r is None]
         if missing:
             whole = len(missing) == len(references)
-            warnings.warn(f"{type(self).__name__}: environment {b}: {'no object' if whole else f'object(s) {missing}'} "
-                          f"found on the episode's first frame (hidden, or a bad depth frame): "
-                          f"{'nothing' if whole else 'they are not'} tracked this episode", RuntimeWarning,
-                          stacklevel=3)
+            what = "no object found" if whole else f"object(s) {missing} not found"
+            warnings.warn(f"{type(self).__name__}: environment {b}: {what} on the episode's first frame (hidden, or "
+                          f"a bad depth frame): {'nothing is' if whole else 'they are not'} tracked this episode",
+                          RuntimeWarning, stacklevel=3)
 
     def _row_segmentation(self, b: int, segmentation, new_episode: bool):
         """Row ``b``'s segmentation image when its episode isolates objects by masks, else None (geometry):

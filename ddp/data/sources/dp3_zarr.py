@@ -67,6 +67,8 @@ class DP3ZarrConfig:
         subsample_seed: seed of ``"random"``.
         keys: episode key -> zarr array; must map point_cloud, agent_pos and action. Extra
             entries (e.g. ``full_state: data/full_state``) are imported as extra keys.
+        fill_missing_chunks: read chunks a required array does not store as its fill value (zarr leaves a
+            chunk of only that value unwritten unless told otherwise) instead of refusing the store.
     """
 
     path: str
@@ -75,6 +77,7 @@ class DP3ZarrConfig:
     subsample: Literal["fps", "random"] = "fps"
     subsample_seed: int = 0
     keys: dict[str, str] = field(default_factory=lambda: dict(DEFAULT_KEYS))
+    fill_missing_chunks: bool = False
 
     def __post_init__(self):
         if not self.path:
@@ -107,13 +110,17 @@ def read_dp3_zarr(
     num_points: int | None = None,
     subsample: str = "fps",
     subsample_seed: int = 0,
+    fill_missing: bool = False,
 ) -> Episodes:
-    """Read a DP3 zarr replay buffer into :class:`Episodes` (float arrays as float32)."""
+    """Read a DP3 zarr replay buffer into :class:`Episodes` (float arrays as float32). A chunk not stored in a
+    required array is an error unless ``fill_missing`` (it then reads as the fill value, with a warning)."""
     zarr = _zarr()
     path = Path(path).expanduser()
     keys = dict(DEFAULT_KEYS if keys is None else keys)
     if not path.exists():
         raise DDPError(f"{path}: no such DP3 zarr directory")
+    if not path.is_dir():
+        raise DDPError(f"{path}: not a directory; only directory zarr stores are read (unzip a zipped store)")
     try:
         root = zarr.open(str(path), mode="r")
     except Exception as err:  # noqa: BLE001 - zarr raises several types for "not a zarr store"
@@ -122,7 +129,7 @@ def read_dp3_zarr(
         raise DDPError(f"{path}: is a single zarr array, expected a DP3 group with data/ and meta/")
 
     def array(name: str, *, required: bool = True):
-        _check_codecs(path, name)  # before zarr parses the metadata: a pickle codec would run code on reading
+        checked = _check_codecs(path, name)  # before zarr parses the metadata: a pickle codec would run code
         try:
             arr = root[name]
         except KeyError:
@@ -133,6 +140,9 @@ def read_dp3_zarr(
         except (ValueError, TypeError) as err:
             first = (str(err).strip().splitlines() or [type(err).__name__])[0]
             raise DDPError(f"{path}: {name}: unreadable array metadata ({first})") from None
+        if not checked:  # zarr found it elsewhere (a zip, N5 or consolidated store): its codecs were not seen
+            raise DDPError(f"{path}: {name} has no .zarray / zarr.json file on disk; only directory stores are "
+                           "read (their codecs are checked before reading)")
         try:
             kind = np.dtype(arr.dtype).kind
         except TypeError:
@@ -143,8 +153,8 @@ def read_dp3_zarr(
         if stored < chunks:  # zarr reads a chunk file that is not there as the fill value, without a word
             message = (f"{path}: {name}: {chunks - stored} of {chunks} chunks are not stored (a damaged or partly "
                        f"copied store, or chunks of only the fill value {arr.fill_value} left unwritten)")
-            if required:  # a stretch of zero clouds, states or actions is no demonstration
-                raise DDPError(message)
+            if required and not fill_missing:  # a stretch of zero clouds, states or actions is no demonstration
+                raise DDPError(message + "; data.fill_missing_chunks: true reads them as the fill value")
             warnings.warn(message + f": they read as {arr.fill_value}", RuntimeWarning, stacklevel=3)
         return arr
 
@@ -199,14 +209,15 @@ def _read_cloud(arr, path, zkey, channels, num_points, method, seed) -> np.ndarr
 #: dropped): numeric codecs only; any other (``pickle``, ``json2``, ``msgpack2``, ...) is refused unread
 _SAFE_CODECS = frozenset({
     "blosc", "zstd", "lz4", "zlib", "gzip", "bz2", "lzma", "delta", "fixedscaleoffset", "shuffle", "quantize",
-    "bitround", "packbits", "crc32", "crc32c", "adler32", "fletcher32", "bytes", "endian", "transpose",
+    "bitround", "packbits", "astype", "crc32", "crc32c", "adler32", "fletcher32", "bytes", "endian", "transpose",
     "sharding_indexed",
 })
 
 
-def _check_codecs(path: Path, name: str) -> None:
+def _check_codecs(path: Path, name: str) -> bool:
     """Refuse an array whose stored metadata names a codec outside :data:`_SAFE_CODECS`, read from the
-    metadata file itself (zarr 2 applies ``numcodecs.Pickle`` to any dtype, ``<f4`` too)."""
+    metadata file itself (zarr 2 applies ``numcodecs.Pickle`` to any dtype, ``<f4`` too). False when there is
+    no metadata file of that array on disk."""
     folder = path.joinpath(*name.split("/"))
     ids: list = []
     if (folder / ".zarray").is_file():  # zarr format 2
@@ -228,11 +239,12 @@ def _check_codecs(path: Path, name: str) -> None:
 
         walk(_json(folder / "zarr.json", path, name).get("codecs"))
     else:
-        return  # no array of that name: the lookup names what the store holds
+        return False  # no array of that name (the lookup names what the store holds), or not a directory store
     unsafe = [c for c in ids if not (isinstance(c, str) and c.removeprefix("numcodecs.") in _SAFE_CODECS)]
     if unsafe:
         raise DDPError(f"{path}: {name} is stored with codec {unsafe[0]!r}; only numeric codecs are read "
                        f"(refused unread: some codecs run code when decoding)")
+    return True
 
 
 def _json(file: Path, path: Path, name: str) -> dict:
@@ -329,6 +341,7 @@ class DP3Zarr:
             num_points=num_points,
             subsample=cfg.subsample,
             subsample_seed=cfg.subsample_seed,
+            fill_missing=cfg.fill_missing_chunks,
         )
         check_task(episodes, self.task, str(self.path))
         return episodes
