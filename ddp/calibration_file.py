@@ -5,7 +5,7 @@ checkpoint: the fitted statistic and threshold (the detector's ``calibration()``
 false-alarm rate, how many ID episodes and which seeds produced it, and what it is valid for: a
 digest of the model's weights, the detector section, the ID env (the recipe's env section, the
 calibration's overrides of it, the chunking), the episode count and its cap, the sampling setup (both
-schedulers' sections, the forecast samples), the device type and the calibration code's ``VERSION``. A later evaluation with the same reuses it; anything else calibrates again and overwrites it. The file is plain
+schedulers' sections, the forecast samples, the controller's seed), the device type and the calibration code's ``VERSION``. A later evaluation with the same reuses it; anything else calibrates again and overwrites it. The file is plain
 JSON (written atomically); loading it runs no code.
 """
 

@@ -184,8 +184,9 @@ def _calibration(exp, detector, section: dict, *, seed: int, model_hash: str, ru
     # evaluation's overrides of it, and the chunking (a chunk's actions and the stacked observations)
     id_env = {"env": exp.resolved["env"], "overrides": calibration_env(exp),
               "obs_steps": exp.model.obs_steps, "action_steps": exp.model.action_steps}
+    # (the controller's seed too: it seeds the calibration rollouts' policy and forecast noise)
     sampling = {"policy": exp.resolved["policy"]["scheduler"], "world_model": exp.resolved["world_model"]["scheduler"],
-                "forecast_samples": exp.recipe.controller.forecast_samples}
+                "forecast_samples": exp.recipe.controller.forecast_samples, "controller_seed": exp.recipe.seed}
     key = dict(model_hash=model_hash, detector=section, id_env=id_env,
                episodes=cfg.calibration_episodes, max_episodes=cfg.max_calibration_episodes, seed=seed,
                sampling=sampling, device=next(exp.model.parameters()).device.type)

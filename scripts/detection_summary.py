@@ -50,6 +50,10 @@ for sc in scores:
                 continue
             x = row[d]
             clean = f"/{row['id_episodes']}" if "id_episodes" in row else ""
-            cells.append(f"{x['detected_within_1']}/{x['episodes']} ({row['id_false_alarm_episodes']}{clean} FA)")
+            # tau set on successful ID episodes bounds their false alarms (alpha): those, beside all episodes'
+            nominal = (f", {row['id_false_alarm_successful']}/{row['id_successful']} successful"
+                       if row.get("threshold_on") == "successful" and "id_successful" in row else "")
+            cells.append(f"{x['detected_within_1']}/{x['episodes']} ({row['id_false_alarm_episodes']}{clean} FA"
+                         f"{nominal})")
     lines.append(f"| {sc} | " + " | ".join(cells) + " |")
 print("\n".join(lines))

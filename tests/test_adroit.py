@@ -352,3 +352,17 @@ def test_nonfinite_actions_are_refused(make_env):
     action[5] = float("nan")
     with pytest.raises(NonFiniteError, match="adroit env: refused a non-finite action"):
         _step(env, td, action)
+
+
+def test_occlusion_noise_is_not_the_stream_that_drew_the_layout():
+    """gymnasium seeds np_random with PCG64(SeedSequence(seed)), which is np.random.default_rng(seed): the
+    occlusion noise drawn from the env's default episode stream was a function of the door's placement."""
+    import numpy as np
+    from gymnasium.utils import seeding
+
+    from ddp.envs.adroit import AdroitEnv
+
+    layout, _ = seeding.np_random(5)
+    ours = AdroitEnv._episode_rng(None, 5)
+    assert not np.allclose(layout.uniform(size=4), ours.uniform(size=4))
+    assert np.allclose(AdroitEnv._episode_rng(None, 5).uniform(size=4), AdroitEnv._episode_rng(None, 5).uniform(size=4))

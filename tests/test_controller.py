@@ -181,6 +181,9 @@ def test_a_saved_calibration_serves_only_the_env_it_was_made_in(exp, tmp_path, m
     exp.recipe.eval.calibration_env = {"cube_x": [-0.1, 0.0]}  # calibrated on other initial states
     evaluate_once()
     assert len(calls) == 4
+    exp.recipe.seed += 1  # ddp eval --set seed=1: other policy and forecast noise in the calibration rollouts
+    evaluate_once()
+    assert len(calls) == 5
 
 
 def test_imagination_protocols_need_a_world_model_and_imagine_whatever_the_recipe(tiny_recipe, tmp_path):

@@ -143,6 +143,8 @@ def test_unjudged_calibration_episodes_fail_at_once_under_successful_selection()
         fit_calibration(eps, spec, alpha=0.1, threshold_on="successful")
     with pytest.raises(ValueError, match=r"fit_on: successful cannot select"):
         fit_calibration(eps, spec, alpha=0.1, fit_on="successful")
+    with pytest.raises(ValueError, match=r"fit_on: successful cannot select"):  # tau given: still a fit
+        fit_calibration(eps, spec, alpha=0.1, tau=2.0, fit_on="successful")
     assert fit_calibration(eps, spec, alpha=0.1).threshold_episodes == 10  # all / all: nothing to select
 
 
@@ -177,6 +179,11 @@ def test_fit_on_successful_fits_the_phase_scale_on_nominal_episodes_only():
     assert nominal.fit_on == "successful" and every.fit_on == "all"
     with pytest.raises(ValueError, match="none of the 20 fitting ID calibration episodes succeeded"):
         fit_calibration(episodes_from_scores(scores, success=[False] * n), spec, alpha=0.1, fit_on="successful")
+    # with tau in the recipe the reference is still fitted: fit_on selects its episodes there too (it was
+    # ignored, every episode fitted, while results.json said "successful")
+    given = fit_calibration(eps, spec, alpha=0.1, tau=2.0, fit_on="successful")
+    assert given.fit_episodes == int((~failing).sum()) == 30 and given.fit_on == "successful"
+    assert given.chunk_scale == pytest.approx([np.quantile(scores[~failing][:, c], 0.9) for c in range(6)])
     with pytest.raises(ValueError, match="fit_on must be one of"):
         DiscrepancyConfig(fit_on="ok")
 

@@ -13,8 +13,8 @@ same two latent windows (``real``, ``pred``: ``[..., M, D]``):
   mean / std (from calibration rollouts) before squaring;
 * ``spread``: residuals divided per latent dim by the spread of the K
   world-model samples behind the forecast (controller ``forecast_samples``
-  K > 1; a diffusion model's own uncertainty), floored by the median ID
-  spread of that dim so a confident dim cannot blow up;
+  K > 1; a diffusion model's own uncertainty) added in quadrature to the median ID
+  spread of that dim (sqrt(std^2 + median^2)) so a confident dim cannot blow up;
 * ``per_chunk``: the score divided by the ID score typical of the task's
   phase (the median at chunks ``c - window .. c + window``, or another
   ``chunk_quantile``), so a contact phase with large ID errors does not set
@@ -120,8 +120,8 @@ def residual_score(real: torch.Tensor, pred: torch.Tensor, spec: ScoreSpec, *, p
                    std: torch.Tensor | None = None) -> torch.Tensor:
     """The instantaneous score of ``real`` against ``pred`` (``[..., M, D]`` each) -> ``[...]``; NaN where
     ``pred`` is NaN (no forecast yet). ``center`` / ``scale`` ([D]) whiten when ``spec.whiten``; with
-    ``spec.spread``, ``std`` (``[..., M, D]``, the forecast samples' spread) divides the residual, floored
-    by ``scale`` (the ID median spread per dim)."""
+    ``spec.spread``, ``std`` (``[..., M, D]``, the forecast samples' spread) divides the residual, added in
+    quadrature to ``scale`` (the ID median spread per dim)."""
     r = real.double() - pred.double()
     if spec.spread:
         if std is None or scale is None:
@@ -269,6 +269,16 @@ def _fewest_holding_out(need: int, fit_fraction: float) -> int:
     return n
 
 
+def _successful(fit: list[dict]) -> list[dict]:
+    """The fitting episodes that succeeded (``fit_on: successful``)."""
+    if any("success" not in e for e in fit):
+        raise ValueError("fit_on: successful needs calibration episodes that record their success")
+    if not any(e["success"] for e in fit):
+        raise ValueError(f"none of the {len(fit)} fitting ID calibration episodes succeeded (fit_on: "
+                         "successful); set controller.detector.fit_on: all")
+    return [e for e in fit if e["success"]]
+
+
 def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | None, point_dims: int = 0,
                     fit_fraction: float = 0.5, tau: float | None = None,
                     threshold_on: str = "all", fit_on: str = "all") -> ScoreCalibration:
@@ -285,8 +295,10 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
         raise ValueError(f"threshold_on must be one of {', '.join(THRESHOLD_ON)}; got {threshold_on!r}")
     if fit_on not in THRESHOLD_ON:
         raise ValueError(f"fit_on must be one of {', '.join(THRESHOLD_ON)}; got {fit_on!r}")
-    selects = tau is None  # with tau given, every episode fits the reference (fit_on has nothing to select)
-    unjudged = [on for on, value in (("threshold_on", threshold_on), ("fit_on", fit_on))
+    # what selects successful episodes: the threshold when it is calibrated, the reference whenever the
+    # statistic has one (tau given too: a per-phase scale fitted on failing episodes is inflated by them)
+    unjudged = [on for on, value, selects in (("threshold_on", threshold_on, tau is None),
+                                               ("fit_on", fit_on, spec.needs_reference))
                 if selects and value == "successful"]
     if unjudged and any("success" in e and e["success"] is None for e in episodes):
         # a real robot's episodes: taken as failures, they asked for ever more episodes, then failed anyway
@@ -302,17 +314,14 @@ def fit_calibration(episodes: list[dict], spec: ScoreSpec, *, alpha: float | Non
             fits[-1] = True
         fit = [e for e, f in zip(episodes, fits) if f]
         held = [e for e, f in zip(episodes, fits) if not f]
-        if fit_on == "successful":
-            if any("success" not in e for e in fit):
-                raise ValueError("fit_on: successful needs calibration episodes that record their success")
-            if not any(e["success"] for e in fit):
-                raise ValueError(f"none of the {len(fit)} fitting ID calibration episodes succeeded (fit_on: "
-                                 "successful); set controller.detector.fit_on: all")
-            fit = [e for e in fit if e["success"]]
+        fit = _successful(fit) if fit_on == "successful" else fit
         n_fit = len(fit)
-    else:  # tau given: the reference (if any) is fitted on every episode, and is their in-sample ID side
+    else:  # tau given: the reference (if any) is fitted on every episode (that succeeded, with fit_on:
+        # successful), and every episode is the in-sample ID side
         fit, held = list(episodes), list(episodes)
-        n_fit = n if spec.needs_reference else 0
+        if spec.needs_reference and fit_on == "successful":
+            fit = _successful(fit)
+        n_fit = len(fit) if spec.needs_reference else 0
     if tau is None and not held:
         raise ValueError(f"no ID episodes left for the threshold ({n} episodes, {n_fit} used to fit the score)")
     if tau is None and threshold_on == "successful":

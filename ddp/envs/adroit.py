@@ -191,6 +191,11 @@ class AdroitEnv(MujocoCloudEnv):
     def _privileged_spec(self) -> dict:
         return {"state": self._vec_spec(self.task.state_dim), "seed": self._int_spec(1)}
 
+    def _episode_rng(self, seed: int) -> np.random.Generator:
+        # not default_rng(seed): gymnasium's np_random, which draws the layout, is that very stream (occlusion
+        # noise drawn from it was a function of the door's or the board's placement)
+        return np.random.default_rng([seed, 1])
+
     def _sim_reset(self, seed: int) -> None:
         # gymnasium seeds must be non-negative; keep distinct seeds distinct
         self._state, _ = self.sim.reset(seed=seed if seed >= 0 else 2**31 + abs(seed))
