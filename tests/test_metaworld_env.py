@@ -266,6 +266,9 @@ def test_pause_fingers_stops_a_closing_gripper_during_a_shift(make_env):
         widths[pause] = (before, _finger_width(env))
     assert widths[False][1] < widths[False][0] - 0.03, widths
     np.testing.assert_allclose(widths[True][1], widths[True][0], atol=1e-3)
+    # a safe lift with no settling collapsed to its last waypoint (the hand dragged across the table)
+    with pytest.raises(ValueError, match="safe_lift needs settle_steps >= 1"):
+        env.shift_end_effector([-0.2, -0.1, 0.0], safe_lift=0.05, settle_steps=0)
 
 
 @pytest.mark.filterwarnings("ignore:Constant")  # metaworld's policies warn about their own gains

@@ -409,6 +409,9 @@ class MetaWorldEnv(MujocoCloudEnv):
         n = self.config.settle_steps if settle_steps is None else settle_steps
         if n < 0:
             raise ValueError(f"settle_steps must be >= 0; got {n}")
+        if safe_lift > 0.0 and n == 0:  # the three waypoints would collapse into the last one
+            raise ValueError("safe_lift needs settle_steps >= 1: with 0 only the last waypoint is written and the "
+                             "hand is dragged across the table to it")
         waypoints = [target]
         if safe_lift > 0.0:
             lift = np.array([0.0, 0.0, safe_lift])
