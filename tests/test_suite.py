@@ -846,3 +846,23 @@ def test_a_suite_whose_every_run_failed_exits_1(suite_file, capsys):
     suite_file.write_text(yaml.safe_dump(data, sort_keys=False))
     assert main(["suite", str(suite_file), "--tasks", "near", "--methods", "dp3", "--seeds", "0"]) == 1
     assert "ddp: 1 run(s) failed: near__dp3__seed0" in capsys.readouterr().err
+
+
+def test_a_result_that_cannot_be_stored_is_one_line(suite_file, monkeypatch):
+    """A full disk or a read-only results folder escaped the suite as an OSError traceback."""
+    import errno
+
+    from ddp.errors import DDPError
+    from ddp.suite import store as store_module
+
+    run = load_suite(suite_file).runs[0]
+    store = ResultStore(load_suite(suite_file).results_dir)
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(store_module, "atomic_write", full)
+    with pytest.raises(DDPError, match=rf"cannot store {run.run_id}'s result \(No space left on device\); its "
+                                       "checkpoint stays") as err:
+        store.save(run, _result(run.task, run.method, run.seed, {"id": 1.0}))
+    assert "\n" not in str(err.value)

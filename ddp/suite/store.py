@@ -14,6 +14,7 @@ from pathlib import Path
 
 from ddp import results_json
 from ddp.atomic_file import atomic_write
+from ddp.errors import DDPError
 from ddp.suite.spec import RunSpec
 
 __all__ = ["ResultStore", "evaluation_seconds", "read_complete"]
@@ -87,7 +88,11 @@ class ResultStore:
 
     def _write(self, run: RunSpec, data: dict) -> Path:
         text = results_json.dumps(data)
-        return atomic_write(self.path(run), lambda f: f.write(text), binary=False)
+        try:
+            return atomic_write(self.path(run), lambda f: f.write(text), binary=False)
+        except OSError as err:  # a full disk, a read-only results folder: one line, not a traceback
+            raise DDPError(f"{self.path(run)}: cannot store {run.run_id}'s result ({err.strerror or err}); its "
+                           "checkpoint stays, and the suite evaluates it again when started again") from None
 
     def all(self, runs: list[RunSpec]) -> dict[str, dict]:
         """run_id -> stored result, for the runs that have a valid one."""
