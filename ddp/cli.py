@@ -200,6 +200,15 @@ def _detect(args) -> int:
     check_protocols(disturbances, source="--disturbances")
     rollouts = made_with = None
     if args.rollouts:
+        # how the rollouts were made is the file's: a flag that would change them is refused, not ignored
+        ignored = [flag for flag, value in (("--episodes", args.episodes), ("--calibration-episodes",
+                   args.calibration_episodes), ("--env", args.env or None), ("--samples", args.samples),
+                   ("--seed", args.seed), ("--num-envs", args.num_envs), ("--parallel", args.parallel or None))
+                   if value is not None]
+        if ignored:
+            raise DDPError(f"--rollouts scores saved rollouts: {', '.join(ignored)} would change how they are made, "
+                           f"which the file fixes (drop {'it' if len(ignored) == 1 else 'them'}, or --rollouts to roll "
+                           "out again)")
         if not Path(args.rollouts).is_file():
             raise DDPError(f"--rollouts: no such file: {args.rollouts}")
         try:
@@ -214,9 +223,11 @@ def _detect(args) -> int:
     try:
         # the recipe detector's alpha (what its evaluations calibrate to), unless --alpha says otherwise
         alpha = args.alpha if args.alpha is not None else getattr(exp.parts["controller.detector"].config, "alpha", 0.05)
-        rep = detect(exp, episodes=args.episodes, calibration_episodes=args.calibration_episodes, alpha=alpha,
+        rep = detect(exp, episodes=10 if args.episodes is None else args.episodes,
+                     calibration_episodes=args.calibration_episodes, alpha=alpha,
                      seed=args.seed, disturbances=disturbances, env=_env_overrides(args.env), variants=variants,
-                     progress=not args.quiet, num_envs=args.num_envs, parallel=args.parallel,
+                     progress=not args.quiet, num_envs=1 if args.num_envs is None else args.num_envs,
+                     parallel=args.parallel,
                      samples=args.samples, rollouts=rollouts, threshold_on=args.threshold_on)
     except ValueError as err:
         raise DDPError(str(err)) from None
@@ -379,6 +390,14 @@ def _run(args) -> int:
         check_protocols(protocols, source="--protocols")
     if args.jobs > 1 and len(args.recipes) > 1:
         return _run_jobs(args)
+    from ddp.evaluate import settle
+
+    # every recipe built and its evaluation settled before any trains: a typo in the second recipe, or a protocol
+    # the DP3 baseline cannot run, is found now, not after the first recipe's training
+    # (each is built again before it trains: a build seeds torch, so a run trains as it would alone)
+    for recipe in args.recipes:
+        settle(build(recipe, args.overrides), protocols, episodes=args.episodes, output_dir=None, num_envs=None,
+               seed=None, video=None, parallel=None)
     reports = {}
     for recipe in args.recipes:
         exp = build(recipe, args.overrides)
@@ -522,7 +541,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--trust-plugins", action="store_true",
                    help="without RECIPE: import the plugin modules the checkpoint's recipe lists (runs their code)")
     p.add_argument("--checkpoint", required=True, help="checkpoint written by ddp train (last.pt)")
-    p.add_argument("--episodes", type=int, default=10, help="test episodes per condition (ID and each disturbance)")
+    p.add_argument("--episodes", type=int, help="test episodes per condition (ID and each disturbance; default 10)")
     p.add_argument("--calibration-episodes", type=int, help="ID calibration episodes (default: eval.calibration_episodes; more are rolled out while too few succeed to set tau on)")
     p.add_argument("--threshold-on", choices=["successful", "all"], help="held-out ID episodes that set every statistic's tau (default: each statistic's own, successful unless it says all)")
     p.add_argument("--alpha", type=float, help="target false-alarm rate per ID episode (default: the recipe detector's "
@@ -533,7 +552,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--rollouts", help="score the rollouts a previous ddp detect saved (detect_rollouts.npz) instead of rolling out")
     p.add_argument("--samples", type=int, help="world-model samples per forecast (default: controller.forecast_samples); the spread statistics need > 1")
     p.add_argument("--seed", type=int, help="first test seed (default: eval.seed; calibration uses seed + 100000)")
-    p.add_argument("--num-envs", type=int, default=1, help="environments stepped together (default 1)")
+    p.add_argument("--num-envs", type=int, help="environments stepped together (default 1)")
     p.add_argument("--parallel", action="store_true", help="one worker process per env")
     p.add_argument("--output-dir", help="default: <checkpoint dir>/detect")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

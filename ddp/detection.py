@@ -255,7 +255,19 @@ def detect(exp, *, episodes: int = 10, calibration_episodes: int | None = None, 
     ``"rollouts"`` of an earlier report (see :func:`save_rollouts` / :func:`load_rollouts`) to score
     new statistics on without rolling out again. ``threshold_on`` (``successful`` / ``all``): which held-out
     ID episodes set every variant's tau (default: each variant's own, ``successful`` unless it says).
+    ``exp`` is left as it was (``samples`` applies to this call only).
     """
+    before = exp.recipe.controller.forecast_samples
+    try:
+        return _detect(exp, episodes=episodes, calibration_episodes=calibration_episodes, alpha=alpha, seed=seed,
+                       disturbances=disturbances, env=env, variants=variants, progress=progress, num_envs=num_envs,
+                       parallel=parallel, samples=samples, rollouts=rollouts, threshold_on=threshold_on)
+    finally:
+        exp.recipe.controller.forecast_samples = before
+
+
+def _detect(exp, *, episodes, calibration_episodes, alpha, seed, disturbances, env, variants, progress, num_envs,
+            parallel, samples, rollouts, threshold_on) -> dict:
     from ddp.contracts import NeedMoreEpisodes
     from ddp.detectors.discrepancy import DiscrepancyConfig
     from ddp.detectors.scores import fit_calibration

@@ -126,7 +126,29 @@ class Experiment:
             raise CheckpointError(f"{path}: weights do not fit this recipe's model: {first}") from None
         self.checkpoint_path = Path(path)  # a detector calibration is saved beside it
         self.checkpoint_weights = "raw" if weights is state["model"] else "ema"  # what an evaluation reports
+        self._warn_other_task(path, state)
         return self
+
+    def _warn_other_task(self, path, state: dict) -> None:
+        """One warning when the checkpoint was trained on another environment or task than this recipe's (its
+        weights fit, so it loads: fine-tuning or a cross-task evaluation may mean it; a wrong --checkpoint
+        would otherwise file one task's policy under another's results)."""
+        import warnings
+
+        from ddp.checkpoint import stored_recipe
+
+        try:
+            trained = stored_recipe(path, state).get("env")
+        except CheckpointError:
+            return
+        now = self.resolved.get("env")
+        if not (isinstance(trained, dict) and isinstance(now, dict)):
+            return
+        differ = [f"env.{k}: {trained.get(k)!r} -> {now.get(k)!r}" for k in ("name", "task")
+                  if trained.get(k) != now.get(k)]
+        if differ:
+            warnings.warn(f"{path}: trained on another environment or task than this recipe's ({'; '.join(differ)})",
+                          UserWarning, stacklevel=3)
 
     def _scheduler_changes(self, path, state: dict) -> dict:
         """Scheduler options that define what the checkpoint's networks learned (prediction type, noise schedule,

@@ -112,6 +112,16 @@ class EMAConfig:
             raise ValueError(f"inv_gamma must be > 0; got {self.inv_gamma}")
 
 
+def check_output_dir(path: str) -> None:
+    """An output folder may name the recipe as ``{name}``, nothing else (a typo such as ``{nam}`` was a
+    KeyError traceback when the run started)."""
+    try:
+        path.format(name="x")
+    except (KeyError, IndexError, ValueError, AttributeError) as err:
+        raise ValueError(f"output_dir {path!r}: only {{name}} (the recipe's name) may be filled in "
+                         f"({type(err).__name__}: {err}); write a literal brace as {{{{ or }}}}") from None
+
+
 @dataclass
 class TrainConfig:
     """Optimisation (DP3's defaults: AdamW 1e-4, betas (0.95, 0.999), wd 1e-6, batch 128, 500 warm-up)."""
@@ -138,6 +148,7 @@ class TrainConfig:
     micro_batches: int = 1
 
     def __post_init__(self):
+        check_output_dir(self.output_dir)
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1; got {self.batch_size}")
         if self.micro_batches < 1 or self.batch_size % self.micro_batches:
@@ -226,6 +237,7 @@ class EvalConfig:
     env_oracle_tracking: bool = False  # OOD protocols with tracking: the env's oracle tracks and snaps back
 
     def __post_init__(self):
+        check_output_dir(self.output_dir)
         if self.episodes < 1:
             raise ValueError(f"episodes must be >= 1; got {self.episodes}")
         if self.num_envs < 1:

@@ -245,6 +245,10 @@ CASES = [
      "--env: env 'synthetic_reach' has no option 'displacment_chunk'; did you mean 'displacement_chunk'"),
     ("detect-missing-rollouts", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--rollouts", str(t / "x.npz")],
      "--rollouts: no such file"),
+    # flags that make rollouts were accepted with --rollouts and ignored (the file's values were used)
+    ("detect-rollouts-with-making-flags", lambda t, tr: ["detect", "--checkpoint", str(tr["ckpt"]), "--rollouts",
+                                                         str(t / "x.npz"), "--episodes", "5", "--seed", "3"],
+     "--rollouts scores saved rollouts: --episodes, --seed would change how they are made"),
     ("suite-missing-file", lambda t, tr: ["suite", str(t / "nope.yaml")], "suite file not found"),
     ("suite-unknown-key", lambda t, tr: ["suite", write(t / "s.yaml", {"name": "s", "tasks": {"a": tr["recipe"]},
                                                                            "sedes": [0]})],

@@ -111,6 +111,12 @@ def test_flags_are_checked_before_any_work(capsys, tmp_path, suite_file):
         (["run", recipe, "--protocols", "id,ood_dpp", "--set", f"train.output_dir={tmp_path}/r"], "ood_dpp"),
         (["run", recipe, "--episodes", "0", "--set", f"train.output_dir={tmp_path}/r"], "--episodes: must be >= 1"),
         (["run", recipe, "--protocols", "", "--set", f"train.output_dir={tmp_path}/r"], "--protocols: empty"),
+        # the DP3 baseline beside DDP with one of DDP's protocols: found before DDP trains (it was after)
+        (["run", str(RECIPES / "synthetic" / "ddp.yaml"), str(RECIPES / "synthetic" / "dp3.yaml"), "--protocols",
+          "id,ood_ddp", "--set",
+          f"train.output_dir={tmp_path}/r"], "protocol ood_ddp"),
+        (["run", str(RECIPES / "synthetic" / "ddp.yaml"), str(tmp_path / "typo.yaml"), "--set",
+          f"train.output_dir={tmp_path}/r"], "typo.yaml"),
         (["eval", recipe, "--checkpoint", str(tmp_path / "none.pt"), "--protocols", " , "], "--protocols: empty"),
         (["suite", str(suite_file), "--tasks", ""], "--tasks: empty"),
         (["suite", str(suite_file), "--workers", "2", "--ray"], "--workers and --ray are alternatives"),

@@ -249,6 +249,10 @@ def test_detect_rolls_out_more_calibration_episodes_once_for_every_statistic(tin
     rows = {r["score"]: r for r in rep["rows"]}
     assert rows["per_chunk"]["threshold_on"] == "successful" and rows["per_chunk"]["threshold_episodes"] >= 19
     assert rows["per_chunk_all"]["threshold_episodes"] == n_cal // 2  # the same episodes, every held-out one
+    # --samples applies to that call: the experiment's recipe was left with it (a later evaluate() sampled so)
+    before = exp.recipe.controller.forecast_samples
+    rep = detection.detect(exp, episodes=4, calibration_episodes=40, variants=variants, progress=False, samples=3)
+    assert rep["forecast_samples"] == 3 and exp.recipe.controller.forecast_samples == before
 
 
 def test_conformal_threshold_rule():

@@ -405,3 +405,12 @@ def test_setting_a_part_s_name_keeps_nested_options_other_sets_wrote():
     assert out["policy"]["denoiser"] == {"name": "b", "blocks": {"depth": 2}}
     out = apply_overrides(data, ["policy.denoiser.name=b", "policy.denoiser.blocks.depth=2"])
     assert out["policy"]["denoiser"] == {"name": "b", "blocks": {"depth": 2}}
+
+
+def test_an_output_folder_may_only_fill_in_the_recipe_s_name(good):
+    """`eval.output_dir: runs/{nam}` passed the recipe check and was a KeyError traceback when the run began."""
+    for key in ("train.output_dir", "eval.output_dir"):
+        for bad, why in (("runs/{nam}", "KeyError"), ("runs/{0}", "IndexError"), ("runs/{", "ValueError")):
+            msg = error_of(good, [f"{key}={bad}"])
+            assert f"output_dir '{bad}': only {{name}}" in msg and why in msg, msg
+    assert build(good, ["eval.output_dir=runs/{name}/e"]).recipe.eval.output_dir == "runs/{name}/e"

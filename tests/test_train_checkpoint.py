@@ -418,3 +418,26 @@ def test_scheduler_check_reads_only_what_the_weights_learned(tiny_recipe, tmp_pa
     monkeypatch.setattr(ddp.atomic_file.os, "fsync", refusing)
     written = ddp.atomic_file.atomic_directory(tmp_path / "d", lambda tmp: (tmp / "f").write_text("x"))
     assert (written / "f").read_text() == "x" and os.listdir(tmp_path) == ["d"]
+
+
+def test_weights_trained_on_another_task_load_with_a_warning(tiny_recipe, tmp_path):
+    """A drawer-open checkpoint loaded into a recipe of another env or task (the weights fit) loaded silently:
+    `ddp eval <recipe> --checkpoint <wrong run>` filed one task's policy under another's results."""
+    import warnings
+
+    import yaml
+
+    from ddp.checkpoint import load_checkpoint
+
+    exp = build(tiny_recipe)
+    exp.train(output_dir=tmp_path, progress=False)
+    state = load_checkpoint(tmp_path / "last.pt")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same task: no warning
+        build(tiny_recipe).load_checkpoint(tmp_path / "last.pt", state=state)
+    stored = yaml.safe_load(state["recipe"])
+    stored["env"] = {**stored["env"], "name": "metaworld", "task": "drawer-open"}
+    state["recipe"] = yaml.safe_dump(stored)
+    with pytest.warns(UserWarning, match=r"trained on another environment or task than this recipe's \(env.name: "
+                                         r"'metaworld' -> 'synthetic_reach'; env.task: 'drawer-open' -> None\)"):
+        build(tiny_recipe).load_checkpoint(tmp_path / "last.pt", state=state)
