@@ -55,7 +55,7 @@ def settle(exp, protocols, *, episodes, output_dir, num_envs, seed, video, paral
         protocols = list(cfg.protocols)
     else:
         named = {"source": "--protocols"}
-        protocols = list(protocols)
+        protocols = [protocols] if isinstance(protocols, str) else list(protocols)  # evaluate("id"): one name
         check_protocols(protocols, source="--protocols")
         if not protocols:
             raise RecipeError("no protocol given", source="--protocols")

@@ -11,7 +11,7 @@ from typing import Iterable
 import torch
 
 from ddp.checkpoint import load_checkpoint
-from ddp.errors import CheckpointError, DDPError, RecipeError
+from ddp.errors import CheckpointError, DDPError, RecipeError, suggest
 from ddp.recipe import dump_yaml, load_recipe
 from ddp.schema import Part, validate
 
@@ -69,6 +69,11 @@ class Experiment:
         part = self.parts.get("env")
         if part is None:
             raise RecipeError("this recipe has no env section", source=self.source, key="env")
+        fields = {f.name for f in dataclasses.fields(part.config)}
+        for key in overrides:
+            if key not in fields:
+                raise RecipeError(f"env '{part.plugin.name}' has no option {key!r}{suggest(key, sorted(fields))}",
+                                  source=self.source, key=f"env.{key}")
         config = dataclasses.replace(part.config, **overrides) if overrides else part.config
         return Part(part.plugin, config).build(seed=seed)  # checked against the env contract
 

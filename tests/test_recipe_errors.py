@@ -414,3 +414,18 @@ def test_an_output_folder_may_only_fill_in_the_recipe_s_name(good):
             msg = error_of(good, [f"{key}={bad}"])
             assert f"output_dir '{bad}': only {{name}}" in msg and why in msg, msg
     assert build(good, ["eval.output_dir=runs/{name}/e"]).recipe.eval.output_dir == "runs/{name}/e"
+
+
+def test_python_api_overrides_name_the_key_and_a_protocol_string_is_one_name(good, monkeypatch):
+    """exp.make_env(typo=1) was a raw TypeError; exp.evaluate("id") split the string into letters and said
+    "unknown protocol 'i'"."""
+    from ddp import evaluate as evaluate_module
+
+    exp = build(good)
+    msg = str(pytest.raises(RecipeError, exp.make_env, displacment=True).value)
+    assert "env.displacment" in msg and "did you mean 'displacement'" in msg, msg
+    seen = []
+    monkeypatch.setattr(evaluate_module, "check_protocols", lambda names, **kw: (seen.append(list(names)), 1 / 0))
+    with pytest.raises(ZeroDivisionError):  # stops right after the names were checked
+        exp.evaluate("id", progress=False)
+    assert seen == [["id"]]
