@@ -388,16 +388,16 @@ def _run(args) -> int:
         from ddp.protocols.base import check_protocols
 
         check_protocols(protocols, source="--protocols")
-    if args.jobs > 1 and len(args.recipes) > 1:
-        return _run_jobs(args)
     from ddp.evaluate import settle
 
-    # every recipe built and its evaluation settled before any trains: a typo in the second recipe, or a protocol
-    # the DP3 baseline cannot run, is found now, not after the first recipe's training
+    # every recipe built and its evaluation settled before any trains (side by side too): a typo in the second
+    # recipe, or a protocol the DP3 baseline cannot run, is found now, not after the first recipe's training
     # (each is built again before it trains: a build seeds torch, so a run trains as it would alone)
     for recipe in args.recipes:
         settle(build(recipe, args.overrides), protocols, episodes=args.episodes, output_dir=None, num_envs=None,
                seed=None, video=None, parallel=None)
+    if args.jobs > 1 and len(args.recipes) > 1:
+        return _run_jobs(args)
     reports = {}
     for recipe in args.recipes:
         exp = build(recipe, args.overrides)

@@ -117,6 +117,8 @@ def test_flags_are_checked_before_any_work(capsys, tmp_path, suite_file):
           f"train.output_dir={tmp_path}/r"], "protocol ood_ddp"),
         (["run", str(RECIPES / "synthetic" / "ddp.yaml"), str(tmp_path / "typo.yaml"), "--set",
           f"train.output_dir={tmp_path}/r"], "typo.yaml"),
+        (["run", str(RECIPES / "synthetic" / "ddp.yaml"), str(RECIPES / "synthetic" / "dp3.yaml"), "--jobs", "2",
+          "--protocols", "id,ood_ddp", "--set", f"train.output_dir={tmp_path}/r"], "protocol ood_ddp"),
         (["eval", recipe, "--checkpoint", str(tmp_path / "none.pt"), "--protocols", " , "], "--protocols: empty"),
         (["suite", str(suite_file), "--tasks", ""], "--tasks: empty"),
         (["suite", str(suite_file), "--workers", "2", "--ray"], "--workers and --ray are alternatives"),
