@@ -53,12 +53,6 @@ log = logging.getLogger(__name__)
 GENERATION_FILE = "generation.json"
 
 
-def cache_lock(path: Path):
-    """Hold an exclusive (blocking) ``flock`` on ``<path.parent>/.<path.name>.lock``; the kernel drops it if
-    the process dies."""
-    return exclusive_lock(path)
-
-
 @dataclass
 class CachedDemosConfig:
     """Options every cached expert source has (subclass it to change defaults or add options).
@@ -318,7 +312,7 @@ class CachedExpertDemos:
         "cache_episodes" (what the cache holds), "stats"}`` (``stats`` of the run
         that generated the cache).
         """
-        with cache_lock(self.path):  # another process generating this cache: wait for it, then use it
+        with exclusive_lock(self.path):  # another process generating this cache: wait for it, then use it
             return self._prepare_locked(progress, regenerate)
 
     def _prepare_locked(self, progress: bool, regenerate: bool | None) -> dict:
@@ -346,7 +340,7 @@ class CachedExpertDemos:
         """The demos, memory-mapped from the cache (generated first if missing or stale). The cache is
         checked and mapped under its lock: another run replacing it (other settings, one path) waits, and
         the mapping keeps the files it opened."""
-        with cache_lock(self.path):
+        with exclusive_lock(self.path):
             info = self._prepare_locked(progress=True, regenerate=None)
             try:
                 demos = Episodes.load(self.path)

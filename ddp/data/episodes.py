@@ -102,10 +102,7 @@ class Episodes:
         meta_file = path / "meta.json"
         if not meta_file.exists():
             raise DDPError(f"{path}: not a ddp episode directory (no meta.json)")
-        try:
-            meta = json.loads(meta_file.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as err:
-            raise DDPError(f"{meta_file}: not valid JSON ({err})") from None
+        meta = _read_json(meta_file)
         found = meta.get("format") if isinstance(meta, dict) else None
         if found != FORMAT:
             raise DDPError(f"{path}: meta.json format is {found!r}, expected {FORMAT!r}")
@@ -150,6 +147,14 @@ def _copy_on_write(leaf: torch.Tensor) -> torch.Tensor:
         return leaf
 
 
+def _read_json(file: Path):
+    """``file``'s JSON value; a file that is not readable JSON is one DDPError line naming it."""
+    try:
+        return json.loads(file.read_text())
+    except (OSError, ValueError, UnicodeDecodeError) as err:  # (JSONDecodeError is a ValueError)
+        raise DDPError(f"{file}: not valid JSON ({str(err).splitlines()[0] if str(err) else err!r})") from None
+
+
 def _check_leaf_files(steps: Path) -> None:
     """Each memory-mapped leaf file holds exactly the bytes its shape and dtype in the TensorDict's
     meta.json need: a file cut short (an interrupted copy, a full disk) is a one-line error, where
@@ -158,10 +163,7 @@ def _check_leaf_files(steps: Path) -> None:
     if not meta_file.is_file():
         raise DDPError(f"{meta_file}: missing (the episode data's layout): a damaged or partly copied episode "
                        "directory")
-    try:
-        meta = json.loads(meta_file.read_text())
-    except (OSError, ValueError, UnicodeDecodeError) as err:
-        raise DDPError(f"{meta_file}: not valid JSON ({str(err).splitlines()[0] if str(err) else err!r})") from None
+    meta = _read_json(meta_file)
     if not isinstance(meta, dict):
         raise DDPError(f"{meta_file}: holds a {type(meta).__name__}, expected the episode data's layout (a mapping)")
     for key, leaf in meta.items():

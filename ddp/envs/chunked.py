@@ -205,7 +205,7 @@ class ChunkedEnv(EnvBase):
         for key in ("done", "terminated", "truncated"):
             out.set(key, last.get(key))
         self._ended = bool(last.get("done").any())
-        if self.recorder is not None and bool(last.get("done").any()):
+        if self.recorder is not None and self._ended:
             self.recorder.finish()
         return out
 
